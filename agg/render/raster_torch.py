@@ -33,8 +33,9 @@ def composite_torch(
     idx = torch.nonzero(visible, as_tuple=True)[0]
     order = idx[torch.argsort(depths.detach()[idx], stable=True)]  # [M] front to back
     if order.numel() == 0 or width * height == 0:
-        accum = colors.new_zeros(height, width, C) + 0.0 * colors.sum()
-        return accum, accum.new_zeros(height, width)
+        # Keep every input in the graph so that backward gives (zero) gradients, like the native backend.
+        zero = 0.0 * (colors.sum() + means2d.sum() + conics.sum() + opacities.sum())
+        return colors.new_zeros(height, width, C) + zero, colors.new_zeros(height, width) + zero
     m2 = means2d[order]  # [M, 2]
     con = conics[order]  # [M, 3]
     col = colors[order]  # [M, C]
