@@ -1,4 +1,4 @@
-"""Builds and loads the native CPU compositor (csrc/rasterize.cpp) on first use.
+"""Builds and loads the native CPU kernels (csrc/: compositing and projection) on first use.
 
 The extension is compiled with ``torch.utils.cpp_extension.load`` into a per-user cache folder, keyed by a hash of
 the source, the flags, torch's version and the machine, so it is built once per machine and never inside an
@@ -18,7 +18,8 @@ from types import ModuleType
 
 import torch
 
-SOURCE = Path(__file__).with_name("csrc") / "rasterize.cpp"
+CSRC = Path(__file__).with_name("csrc")
+SOURCES = [CSRC / "rasterize.cpp", CSRC / "project.cpp", CSRC / "bindings.cpp"]
 # -ffp-contract=off: no fused multiply-adds, so the kernel evaluates sigma exactly like the torch reference.
 CFLAGS = ["-O3", "-fopenmp", "-ffp-contract=off", "-fno-math-errno", "-std=c++17"]
 _lock = threading.Lock()
@@ -49,11 +50,11 @@ def _cpu_model() -> str:
 def cache_dir() -> Path:
     flags = CFLAGS + _arch_flags()
     key = hashlib.sha256(
-        SOURCE.read_bytes() + " ".join(flags).encode() + torch.__version__.encode()
+        b"".join(src.read_bytes() for src in SOURCES) + " ".join(flags).encode() + torch.__version__.encode()
         + sys.version.encode() + _cpu_model().encode()
     ).hexdigest()[:16]
     root = Path(os.environ.get("AGG_EXT_DIR", Path.home() / ".cache" / "agg" / "ext"))
-    return root / f"rasterize_{key}"
+    return root / f"render_{key}"
 
 
 def load() -> ModuleType:
@@ -77,8 +78,8 @@ def load() -> ModuleType:
         flags = CFLAGS + _arch_flags()
         try:
             _module = load_ext(
-                name="agg_rasterize_cpu",
-                sources=[str(SOURCE)],
+                name="agg_render_cpu",
+                sources=[str(src) for src in SOURCES],
                 extra_cflags=flags,
                 extra_ldflags=["-fopenmp"],
                 build_directory=str(build_dir),

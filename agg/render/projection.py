@@ -137,10 +137,24 @@ def project_gaussians(
     conics = torch.stack([(cov_yy + EPS_2D) * inv_det, -cov_xy * inv_det, (cov_xx + EPS_2D) * inv_det], -1)  # [N, 3]
 
     means2d = torch.stack([fx * x * inv_z + cx, fy * y * inv_z + cy], dim=-1)  # [N, 2]
+    return finish_projection(means2d, conics, z, opacities, width, height, near, far)
 
+
+def finish_projection(
+    means2d: Tensor,  # [N, 2]
+    conics: Tensor,  # [N, 3]
+    depths: Tensor,  # [N] camera z
+    opacities: Tensor,  # [N]
+    width: int,
+    height: int,
+    near: float,
+    far: float,
+) -> Projected:
+    """Visibility and opacity-aware screen boxes (not differentiable), shared by the torch and native projections."""
     extent = screen_extent(conics, opacity_threshold(opacities))  # [N, 2]
     with torch.no_grad():
         m2 = means2d.detach()
+        z = depths.detach()
         finite = torch.isfinite(m2).all(-1) & torch.isfinite(conics.detach()).all(-1) & torch.isfinite(z)
         on_screen = (
             (m2[:, 0] + extent[:, 0] >= 0)
@@ -150,7 +164,7 @@ def project_gaussians(
         )
         visible = (z > near) & (z < far) & (opacities.detach() >= 1.0 / 255.0) & finite & on_screen
         radii = torch.where(visible.unsqueeze(-1), torch.ceil(extent), torch.zeros_like(extent)).to(torch.int32)
-    return Projected(means2d=means2d, conics=conics, depths=z, visible=visible, radii=radii)
+    return Projected(means2d=means2d, conics=conics, depths=depths, visible=visible, radii=radii)
 
 
 def invert_rigid(T: Tensor) -> Tensor:

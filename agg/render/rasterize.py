@@ -97,7 +97,11 @@ def rasterize(
         return rasterize_gsplat(means, quats, scales, opacities, colors, sh, K, width, height, viewmat, near, far,
                                 background)
 
-    proj = project_gaussians(means, quats, scales, opacities, viewmat, K, width, height, near, far)
+    if chosen == "cpu" and means.dtype == torch.float32:
+        from agg.render.project_cpu import project_gaussians_cpu as project
+    else:
+        project = project_gaussians
+    proj = project(means, quats, scales, opacities, viewmat, K, width, height, near, far)
     if sh is not None:
         colors = eval_sh(sh, means - camera_center(viewmat))  # [N, 3]
     C = colors.shape[-1]

@@ -450,8 +450,3 @@ std::vector<torch::Tensor> backward(torch::Tensor means2d, torch::Tensor conics,
   }
   return {g_means2d, g_conics, g_colors, g_opac};
 }
-
-PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
-  m.def("forward", &forward, "Composite screen-space Gaussians (forward)");
-  m.def("backward", &backward, "Composite screen-space Gaussians (backward)");
-}
