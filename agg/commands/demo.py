@@ -32,18 +32,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 def read_frame(path: Path, index: int, width: int):
     """One RGB frame as float32 [H, W, 3] in [0, 1], resized to ``width`` (aspect kept)."""
-    import av
-    import numpy as np
-    from PIL import Image
+    from agg.io.video import IngestConfig, ingest
 
-    with av.open(str(path)) as container:
-        for i, frame in enumerate(container.decode(video=0)):
-            if i == index:
-                img = frame.to_image()
-                height = max(1, round(img.height * width / img.width))
-                img = img.resize((width, height), Image.BILINEAR)
-                return np.asarray(img, dtype=np.float32) / 255.0
-    raise ValueError(f"{path} has no frame {index}")
+    result = ingest(path, IngestConfig(width=width, max_frames=index + 1, min_frames=index + 1))
+    return result.frames[index]
 
 
 def run(args: argparse.Namespace) -> int:
