@@ -1,0 +1,421 @@
+"""Agent tracklets: connected components of the dynamic masks, lifted to 3D with depth, tracked with Kalman filters.
+
+``track_agents(masks, depth, K, world_from_camera)`` turns per-frame dynamic masks into the bundle's tracklet prior
+(``agg.io.bundle_priors.Tracklets``, box convention of docs/BUNDLE.md). The steps, and every threshold, are in
+docs/PRIORS.md ("Agent tracklets"):
+
+1. **Detections** per frame (``agg/priors/tracklet_detections.py``): OpenCV connected components of the mask,
+   dropped below a minimum area; a component whose depth is two-layered (an agent in front of another: bimodal
+   log depth *and* a depth edge where the layers meet) is split; parts of one object cut apart by a static
+   occluder (nearby boxes at the same depth) are merged.
+2. **Lifting**: the depth statistic (a percentile of the component's valid depth) back-projects the component's
+   pixel centroid to the *visible-surface centre* (the measurement); the component's pixels, back-projected with
+   a robust plane fit of their inverse depth, are its visible 3D points.
+3. **Tracking** (``agg/priors/kalman.py``): constant-velocity Kalman filters in world x, y, z, chi-square gating
+   on the Mahalanobis distance plus an image-space gate, Hungarian assignment (plus a colour cue with frames); a
+   track coasts (invalid) through up to ``max_missed`` missed frames and keeps its id; tracks with fewer than
+   ``min_hits`` detections are dropped.
+4. **Class** (rigid / non-rigid) from the tracked objects' image aspect ratio, **yaw** from the RTS-smoothed world
+   velocity, and **amodal boxes**: the visible points give the extents, a class-dependent size prior completes
+   the unseen side (one size per rigid track), and the box is pushed away from the camera behind the visible
+   faces; centres follow the RTS-smoothed track.
+
+Scale-free: noise levels and gates are fractions of depth (or of the clip's median agent depth), so scene units
+may be metres or the bundle's normalised units.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+from scipy.stats import chi2
+
+from agg.io.bundle_priors import Tracklets
+from agg.priors.tracklet_detections import Candidate, frame_candidates
+from agg.priors.kalman import smooth_sequence, track_points
+
+
+class TrackletInputError(ValueError):
+    """Bad input to ``track_agents`` (shapes, dtypes, non-finite poses) or a bad ``TrackConfig``."""
+
+
+@dataclass(frozen=True)
+class TrackConfig:
+    """Tracklet extraction settings. Pixel sizes at the masks' resolution; ``*_sigma`` are fractions of depth."""
+
+    # detections
+    min_area_px: int = 6  # components below max(min_area_px, min_area_fraction * H * W) pixels are dropped
+    min_area_fraction: float = 2e-4  # 160x96: 3 px; 1280x720: 184 px
+    connectivity: int = 8  # 4 or 8 (OpenCV connected components)
+    depth_percentile: float = 50.0  # depth statistic of a component (percentile of its valid depth)
+    min_depth_confidence: float = 0.5  # with depth_confidence: lower pixels count as "no depth"
+    min_depth_fraction: float = 0.05  # a component needs >= this fraction (and >= 3 px) of valid depth to be lifted
+    depth_outlier_ratio: float = 1.6  # pixels with depth outside [d / r, d * r] of the statistic are ignored
+    plane_fit: bool = True  # visible points from a robust plane fit of 1/depth (False: raw per-pixel depth)
+    split_depth_layers: bool = True  # split two-layered components (Otsu / widest gap of log depth + edge test)
+    split_min_separation: float = 0.1  # ... when the layer means differ by >= this in log depth (10 %)
+    split_min_contrast: float = 4.0  # ... and by >= this many pooled within-layer stds (Gaussian 2.7, uniform 3.5)
+    split_edge_fraction: float = 0.7  # ... and the layers meet at a jump >= this * separation (above the noise)
+    merge_parts: bool = True  # merge same-frame components at the same depth separated by a small gap
+    merge_depth_ratio: float = 0.1  # |log d_a - log d_b| <= this
+    merge_gap_fraction: float = 0.2  # gap <= this * the smaller extent (a pole, not the lane between two cars)
+    merge_min_overlap: float = 0.7  # ... and their extents on the other axis overlap by >= this * the smaller
+    # Kalman filter (agg/priors/kalman.py); the scale reference s = median depth of all lifted detections
+    lateral_sigma: float = 0.03  # measurement std along camera x and y, fraction of the detection's depth
+    depth_sigma: float = 0.08  # measurement std along camera z, fraction of depth
+    border_sigma_factor: float = 4.0  # measurement stds x this for detections touching the image border
+    accel_sigma: float = 0.01  # white-acceleration std per frame^2, fraction of s
+    init_speed_sigma: float = 0.1  # velocity std of a new track per frame, fraction of s
+    appearance_weight: float = 4.0  # with RGB frames: cost += this * (1 - Bhattacharyya coefficient of colours)
+    appearance_bins: int = 4  # colour histogram bins per RGB channel (4: 64 bins)
+    appearance_memory: float = 0.7  # a track's histogram: moving average keeping this much of the old one
+    gate_probability: float = 0.999  # gate = chi2.ppf(p, 3) on the squared Mahalanobis distance (16.27)
+    gate_box_margin: float = 0.5  # image gate: the predicted centre must project into the detection's box grown
+    #                               by this x its size on each side + gate_box_min_margin; < 0 disables the gate
+    gate_box_min_margin: float = 0.05  # fraction of the image width
+    max_missed: int = 3  # consecutive missed frames before a track ends (2-frame occlusions keep the id)
+    min_hits: int = 3  # tracks with fewer detections are dropped
+    # class and box
+    nonrigid_min_aspect: float = 1.3  # median 3D height / width of the track's detections above this: non-rigid
+    rigid_length_width_ratio: float = 2.4  # rigid footprint: l >= ratio * w and w >= l / ratio (car ~4.5 / 1.85)
+    extent_percentiles: tuple[float, float] = (5.0, 95.0)  # robust extents of the visible points
+    yaw_min_speed_sigmas: float = 3.0  # velocity gives the yaw when |v_horizontal| > this * its std
+    smooth_centres: bool = True  # box centres: the RTS-smoothed track of the amodal centres (False: per frame)
+    yaw_refinements: int = 2  # re-estimate yaw from the smoothed amodal centres this many times
+    max_points: int = 4000  # visible points kept per detection (deterministic stride)
+
+    def validate(self) -> None:
+        def bad(msg: str) -> None:
+            raise TrackletInputError(f"TrackConfig: {msg}")
+
+        if self.min_area_px < 1 or not 0 <= self.min_area_fraction < 1:
+            bad("min_area_px must be >= 1 and min_area_fraction in [0, 1)")
+        if self.connectivity not in (4, 8):
+            bad(f"connectivity must be 4 or 8, got {self.connectivity}")
+        if not 0 <= self.depth_percentile <= 100:
+            bad(f"depth_percentile must be in [0, 100], got {self.depth_percentile}")
+        lo, hi = self.extent_percentiles
+        if not 0 <= lo < hi <= 100:
+            bad(f"extent_percentiles must satisfy 0 <= lo < hi <= 100, got {self.extent_percentiles}")
+        for name in ("lateral_sigma", "depth_sigma", "border_sigma_factor", "accel_sigma", "init_speed_sigma",
+                     "depth_outlier_ratio", "rigid_length_width_ratio", "nonrigid_min_aspect"):
+            if not (np.isfinite(getattr(self, name)) and getattr(self, name) > 0):
+                bad(f"{name} must be a finite value > 0, got {getattr(self, name)}")
+        if self.depth_outlier_ratio <= 1:
+            bad("depth_outlier_ratio must be > 1")
+        if not 0 < self.gate_probability < 1:
+            bad(f"gate_probability must be in (0, 1), got {self.gate_probability}")
+        if self.max_missed < 0 or self.min_hits < 1 or self.yaw_refinements < 0:
+            bad("max_missed and yaw_refinements must be >= 0 and min_hits >= 1")
+        if self.appearance_weight < 0 or not 1 <= self.appearance_bins <= 16 or not 0 <= self.appearance_memory < 1:
+            bad("appearance_weight must be >= 0, appearance_bins in [1, 16], appearance_memory in [0, 1)")
+        if self.max_points < 8:
+            bad("max_points must be >= 8")
+
+
+@dataclass
+class Detection:
+    """One lifted mask component (or depth layer / merged parts) in one frame."""
+
+    frame: int  # frame index i (0..T-1)
+    bbox: np.ndarray  # [4] x0, y0, x1, y1 pixels, inclusive-exclusive (x1 = last column + 1)
+    centre_world: np.ndarray  # [3] visible-surface centre, world frame (the Kalman measurement); NaN: no depth
+    size: np.ndarray  # [3] visible extent (along the horizontal viewing direction, lateral, vertical); NaN: no depth
+    area: int  # pixels
+    label: int  # component label in that frame's OpenCV label map (the smallest one when parts were merged)
+    labels: tuple[int, ...] = ()  # every component label it covers (merged parts)
+    depth: float = float("nan")  # the depth statistic (camera z, scene units)
+    depth_fraction: float = 0.0  # fraction of its pixels with valid depth
+    centre_px: np.ndarray = field(default_factory=lambda: np.full(2, np.nan))  # [2] pixel centroid (u, v)
+
+
+@dataclass
+class TrackResult:
+    tracklets: Tracklets  # ids 1..K (= instance mask values), classes, boxes [K, T, 7], valid, confidence, labels
+    boxes2d: np.ndarray  # [K, T, 4] float32 x0, y0, x1, y1 (inclusive-exclusive), NaN where invalid
+    centres2d: np.ndarray  # [K, T, 2] float32 pixel centroid (u, v) of the track's pixels, NaN where invalid
+    instance_masks: np.ndarray  # [T, H, W] int32: 0 = none, k + 1 = pixels of track k in that frame
+    detections: list[list[Detection]]  # per frame, every detection (tracked or not)
+
+
+# --------------------------------------------------------------------------------------------------------------
+# input checks
+
+
+def _check_inputs(masks, depth, K, world_from_camera, frames, depth_confidence):
+    m = np.asarray(masks)
+    if m.ndim != 3 or min(m.shape) < 1:
+        raise TrackletInputError(f"masks must be [T, H, W] with T, H, W >= 1, got shape {m.shape}")
+    if not (m.dtype == bool or np.issubdtype(m.dtype, np.number)):
+        raise TrackletInputError(f"masks must be bool or numeric, got dtype {m.dtype}")
+    t, h, w = m.shape
+    d = np.asarray(depth)
+    if d.shape != (t, h, w) or not np.issubdtype(d.dtype, np.number):
+        raise TrackletInputError(f"depth must be numeric [{t}, {h}, {w}] like the masks, got {d.shape} {d.dtype}")
+    k = np.asarray(K, dtype=float)
+    if k.shape != (3, 3) or not np.isfinite(k).all() or k[0, 0] <= 0 or k[1, 1] <= 0:
+        raise TrackletInputError(f"K must be a finite [3, 3] pinhole matrix with fx, fy > 0, got {k.shape}")
+    p = np.asarray(world_from_camera, dtype=float)
+    if p.shape != (t, 4, 4) or not np.isfinite(p).all():
+        raise TrackletInputError(f"world_from_camera must be finite [{t}, 4, 4], got {p.shape}")
+    f = None
+    if frames is not None:
+        f = frames if hasattr(frames, "shape") else np.asarray(frames)  # keep a memmap lazy
+        if tuple(f.shape[:3]) != (t, h, w) or len(f.shape) not in (3, 4) or (len(f.shape) == 4 and f.shape[3] != 3):
+            raise TrackletInputError(f"frames must be RGB [{t}, {h}, {w}, 3] (or grey [{t}, {h}, {w}]) like the "
+                                     f"masks, got {tuple(f.shape)}")
+    c = None
+    if depth_confidence is not None:
+        c = np.asarray(depth_confidence)
+        if c.shape != (t, h, w):
+            raise TrackletInputError(f"depth_confidence must be [{t}, {h}, {w}], got {c.shape}")
+    return m, d, k, p, f, c
+
+
+# --------------------------------------------------------------------------------------------------------------
+# class, yaw and amodal boxes
+
+
+def _aspect(c: Candidate, K: np.ndarray) -> float:
+    """3D height / width of a detection from its pixel box: (bh / fy) / (bw / fx)."""
+    x0, y0, x1, y1 = c.bbox
+    return float(((y1 - y0) / K[1, 1]) / max((x1 - x0) / K[0, 0], 1e-9))
+
+
+def _inner(cands: dict, shape: tuple[int, int]) -> list[int]:
+    """Frames whose detection does not touch the image border (all frames when every one does)."""
+    h, w = shape
+    inner = [i for i, c in cands.items() if c.bbox[0] > 0 and c.bbox[1] > 0 and c.bbox[2] < w and c.bbox[3] < h]
+    return inner or list(cands)
+
+
+def _classify(cands: dict, K: np.ndarray, shape: tuple[int, int], cfg: TrackConfig) -> str:
+    """Non-rigid when the median aspect of the detections not cut by the image border is tall (a person)."""
+    ratios = [_aspect(cands[i], K) for i in _inner(cands, shape)]
+    return "non-rigid" if float(np.median(ratios)) > cfg.nonrigid_min_aspect else "rigid"
+
+
+def _heading_yaw(v: np.ndarray) -> float:
+    """Yaw of a box whose x axis points along the horizontal (world x, z) direction of v: atan2(-vz, vx)."""
+    return float(np.arctan2(-v[2], v[0]))
+
+
+def _track_yaws(state: np.ndarray, cov: np.ndarray, valid: np.ndarray, world_from_camera: np.ndarray,
+                cfg: TrackConfig) -> np.ndarray:
+    """[T] yaw per valid frame: smoothed velocity where significant, else the nearest significant frame's, else
+    the camera's heading (road-aligned assumption for an agent that never visibly moves). NaN where invalid."""
+    n = len(valid)
+    yaw = np.full(n, np.nan)
+    for i in np.nonzero(valid)[0]:
+        v = state[i, 3:]
+        speed = float(np.hypot(v[0], v[2]))
+        if speed <= 0 or not np.isfinite(speed):
+            continue
+        u = np.array([v[0], 0.0, v[2]]) / speed
+        sigma = float(np.sqrt(max(u @ cov[i, 3:, 3:] @ u, 0.0)))
+        if speed > cfg.yaw_min_speed_sigmas * sigma:
+            yaw[i] = _heading_yaw(v)
+    have = np.nonzero(np.isfinite(yaw))[0]
+    for i in np.nonzero(valid & ~np.isfinite(yaw))[0]:
+        if len(have):
+            yaw[i] = yaw[have[np.argmin(np.abs(have - i))]]
+        else:
+            yaw[i] = _heading_yaw(world_from_camera[i, :3, 2])
+    return yaw
+
+
+def _box_extents(points: np.ndarray, yaw: float, camera: np.ndarray, cfg: TrackConfig) -> np.ndarray:
+    """[3, 3] rows (mid, extent, camera coordinate) of visible world points [n, 3] along the box axes x, y, z.
+
+    Robust extents: the ``extent_percentiles`` range scaled to the full range of a uniform spread."""
+    axes = np.array([[np.cos(yaw), 0.0, -np.sin(yaw)], [0.0, 1.0, 0.0], [np.sin(yaw), 0.0, np.cos(yaw)]])  # [3, 3]
+    lo_p, hi_p = cfg.extent_percentiles
+    s = points @ axes.T  # [n, 3]
+    a, b = np.percentile(s, [lo_p, hi_p], axis=0)  # [3], [3]
+    return np.stack([0.5 * (a + b), (b - a) / ((hi_p - lo_p) / 100.0), axes @ camera], 1)
+
+
+def _rigid_size(ext: np.ndarray, cfg: TrackConfig) -> np.ndarray:
+    """(l, w, h) of one frame from visible extents [3] (x, y, z): l >= r w and w >= l / r (the class prior)."""
+    r = cfg.rigid_length_width_ratio
+    return np.array([max(ext[0], r * ext[2]), max(ext[2], ext[0] / r), ext[1]])
+
+
+def _place(mid: float, ext: float, size: float, cam: float) -> float:
+    """Centre along one axis of a box of ``size`` whose visible part spans ``ext`` around ``mid``: it grows away
+    from the camera (the visible points are its near face) unless the camera lies within the visible range."""
+    lo, hi = mid - 0.5 * ext, mid + 0.5 * ext
+    if cam < lo:
+        return lo + 0.5 * size
+    if cam > hi:
+        return hi - 0.5 * size
+    return mid
+
+
+def _track_boxes(cands: dict, yaw: np.ndarray, world_from_camera: np.ndarray, rigid: bool, shape: tuple[int, int],
+                 cfg: TrackConfig) -> dict:
+    """Amodal boxes (cx, cy, cz, l, w, h, yaw) of one track, frame -> [7].
+
+    Sizes come from the detections not cut by the image border (all when every one is).
+    Rigid: one size for the track, the median of the per-frame sizes (visible extents along the box axes,
+    completed by the l / w ratio prior), and per frame the box placed behind its visible faces (``_place``).
+    Non-rigid: a square footprint, l = w = the track's median visible lateral extent (measured across the
+    viewing ray from pixel widths, reliable even with noisy depth), h per frame; the centre is the visible-surface
+    centre pushed w / 2 away from the camera along the horizontal viewing direction."""
+    ext = {i: _box_extents(c.points_world, yaw[i], world_from_camera[i, :3, 3], cfg) for i, c in cands.items()}
+    inner = _inner(cands, shape)  # sizes from detections not cut by the image border
+    out = {}
+    if rigid:
+        size = np.median([_rigid_size(ext[i][:, 1], cfg) for i in inner], axis=0)  # [3] l, w, h
+        for i, e in ext.items():
+            ax = np.array([[np.cos(yaw[i]), 0.0, -np.sin(yaw[i])], [0.0, 1.0, 0.0],
+                           [np.sin(yaw[i]), 0.0, np.cos(yaw[i])]])
+            centre = (_place(e[0, 0], e[0, 1], size[0], e[0, 2]) * ax[0] + e[1, 0] * ax[1]
+                      + _place(e[2, 0], e[2, 1], size[1], e[2, 2]) * ax[2])
+            out[i] = np.array([*centre, *size, yaw[i]])
+        return out
+    foot = float(np.median([cands[i].size[1] for i in inner]))
+    for i, c in cands.items():
+        view = c.centre_world - world_from_camera[i, :3, 3]
+        view = np.array([view[0], 0.0, view[2]]) / max(np.hypot(view[0], view[2]), 1e-12)
+        centre = c.centre_world + 0.5 * foot * view
+        centre[1] = ext[i][1, 0]
+        out[i] = np.array([*centre, foot, foot, ext[i][1, 1], yaw[i]])
+    return out
+
+
+# --------------------------------------------------------------------------------------------------------------
+# the entry point
+
+
+def _empty_result(t: int, h: int, w: int, detections) -> TrackResult:
+    tr = Tracklets(ids=np.zeros(0, np.int64), classes=[], boxes=np.zeros((0, t, 7)), valid=np.zeros((0, t), bool),
+                   confidence=np.zeros((0, t), np.float32), labels=[])
+    return TrackResult(tr, np.zeros((0, t, 4), np.float32), np.zeros((0, t, 2), np.float32),
+                       np.zeros((t, h, w), np.int32), detections)
+
+
+def track_agents(masks: np.ndarray, depth: np.ndarray, K: np.ndarray, world_from_camera: np.ndarray,
+                 config: TrackConfig = TrackConfig(), frames: np.ndarray | None = None,
+                 depth_confidence: np.ndarray | None = None,
+                 progress: Callable[[int], None] | None = None) -> TrackResult:
+    """Agent tracklets from dynamic masks and depth.
+
+    masks [T, H, W] bool / 0-1 (any value > 0 is dynamic); depth [T, H, W] camera z-depth in scene units (0 or
+    non-finite = none); K [3, 3] at the masks' resolution; world_from_camera [T, 4, 4]; frames: the RGB video
+    [T, H, W, 3] (uint8, or float in [0, 1]; grey [T, H, W] too) or None: when given, colour histograms of the
+    detections join the association cost (``appearance_weight``); the Kalman time step is one frame;
+    depth_confidence [T, H, W] in [0, 1] (pixels below ``config.min_depth_confidence`` count as no depth);
+    progress: called with i after frame i's detections. Deterministic. Raises TrackletInputError on bad input.
+    """
+    config.validate()
+    m, d, K, P, frames, conf = _check_inputs(masks, depth, K, world_from_camera, frames, depth_confidence)
+    t, h, w = m.shape
+    min_area = max(int(config.min_area_px), int(np.ceil(config.min_area_fraction * h * w)))
+    K_inv = np.linalg.inv(K)
+    cands: list[list[Candidate]] = []
+    for i in range(t):
+        image = None if frames is None else np.asarray(frames[i])
+        cands.append(frame_candidates(m[i] > 0, d[i], None if conf is None else conf[i], image, K_inv, P[i],
+                                      min_area, config))
+        if progress is not None:
+            progress(i)
+    detections = [[_as_detection(c, i) for c in cs] for i, cs in enumerate(cands)]
+    lifted = [[c for c in cs if c.lifted] for cs in cands]  # [T] lists: what the tracker sees
+    all_depths = [c.depth for cs in lifted for c in cs]
+    if not all_depths:
+        return _empty_result(t, h, w, detections)
+    s_ref = float(np.median(all_depths))
+    dt = np.ones(t)
+    n_bins = config.appearance_bins ** 3
+    feats = None if frames is None else [np.array([c.appearance for c in cs]).reshape(len(cs), n_bins)
+                                         for cs in lifted]
+    accel_var, init_vel_var = (config.accel_sigma * s_ref) ** 2, (config.init_speed_sigma * s_ref) ** 2
+    histories = track_points([np.array([c.centre_world for c in cs]).reshape(-1, 3) for cs in lifted],
+                             [np.array([c.cov_world for c in cs]).reshape(-1, 3, 3) for cs in lifted], dt,
+                             accel_var=accel_var, init_vel_var=init_vel_var,
+                             gate=float(chi2.ppf(config.gate_probability, 3)), max_missed=config.max_missed,
+                             feat_steps=feats, appearance_weight=config.appearance_weight,
+                             appearance_memory=config.appearance_memory,
+                             extra_gate=_image_gate(lifted, K, P, w, h, config))
+    histories = [hh for hh in histories if hh.hits >= config.min_hits]
+    n = len(histories)
+    if n == 0:
+        return _empty_result(t, h, w, detections)
+    boxes = np.full((n, t, 7), np.nan)
+    valid = np.zeros((n, t), bool)
+    confidence = np.zeros((n, t), np.float32)
+    boxes2d = np.full((n, t, 4), np.nan, np.float32)
+    centres2d = np.full((n, t, 2), np.nan, np.float32)
+    instance = np.zeros((t, h, w), np.int32)
+    classes: list[str] = []
+    track_factor_hits = 2.0 * config.min_hits
+    for k, hist in enumerate(histories):
+        steps = np.nonzero(hist.assoc >= 0)[0]
+        mine = {int(i): lifted[i][hist.assoc[i]] for i in steps}
+        valid[k, steps] = True
+        cls = _classify(mine, K, (h, w), config)
+        classes.append(cls)
+        # yaw from the surface-centre track, boxes, then (yaw_refinements times) yaw again from the smoothed
+        # track of the amodal box centres, which do not drift when the visible part of an agent changes
+        yaw = _track_yaws(hist.state, hist.cov, valid[k], P, config)
+        for rnd in range(config.yaw_refinements + 1):
+            fitted = _track_boxes(mine, yaw, P, cls == "rigid", (h, w), config)
+            z = np.full((t, 3), np.nan)
+            r = np.repeat(np.eye(3)[None], t, 0)
+            for i, c in mine.items():
+                z[i], r[i] = fitted[i][:3], c.cov_world
+            state, cov = smooth_sequence(z, r, accel_var=accel_var, init_vel_var=init_vel_var)
+            if rnd < config.yaw_refinements:
+                yaw = _track_yaws(state, cov, valid[k], P, config)
+        for i, c in mine.items():
+            boxes[k, i] = fitted[i]
+            if config.smooth_centres:  # the RTS-smoothed amodal centre
+                boxes[k, i, :3] = state[i, :3]
+            confidence[k, i] = c.depth_fraction * min(1.0, hist.hits / track_factor_hits)
+            boxes2d[k, i] = c.bbox
+            centres2d[k, i] = c.centre_px
+            instance[i, c.rows, c.cols] = k + 1
+    tracklets = Tracklets(ids=np.arange(1, n + 1, dtype=np.int64), classes=classes, boxes=boxes, valid=valid,
+                          confidence=np.clip(confidence, 0, 1),
+                          labels=["pedestrian" if c == "non-rigid" else "vehicle" for c in classes])
+    return TrackResult(tracklets, boxes2d, centres2d, instance, detections)
+
+
+def _image_gate(lifted: list[list[Candidate]], K: np.ndarray, world_from_camera: np.ndarray, width: int,
+                height: int, cfg: TrackConfig):
+    """extra_gate(step, predicted world position [3]) -> [N] bool: its projection lies in each detection's grown
+    box, which is open beyond the image border it touches (None when ``gate_box_margin`` < 0)."""
+    if cfg.gate_box_margin < 0:
+        return None
+    grown = []
+    for cs in lifted:
+        b = np.array([c.bbox for c in cs], float).reshape(-1, 4)  # [N, 4]
+        size = np.stack([b[:, 2] - b[:, 0], b[:, 3] - b[:, 1]], 1)  # [N, 2]
+        m = cfg.gate_box_margin * size + cfg.gate_box_min_margin * width  # [N, 2]
+        g = np.concatenate([b[:, :2] - m, b[:, 2:] + m], 1)
+        g[b[:, 0] <= 0, 0], g[b[:, 1] <= 0, 1] = -np.inf, -np.inf  # cut by the border: open on that side
+        g[b[:, 2] >= width, 2], g[b[:, 3] >= height, 3] = np.inf, np.inf
+        grown.append(g)
+    camera_from_world = np.linalg.inv(world_from_camera)  # [T, 4, 4]
+
+    def gate(i: int, x: np.ndarray) -> np.ndarray:
+        p = camera_from_world[i, :3, :3] @ x + camera_from_world[i, :3, 3]
+        if p[2] <= 0:
+            return np.zeros(len(grown[i]), bool)
+        u, v = (K @ p)[:2] / p[2]
+        g = grown[i]
+        return (u >= g[:, 0]) & (u <= g[:, 2]) & (v >= g[:, 1]) & (v <= g[:, 3])
+
+    return gate
+
+
+def _as_detection(c: Candidate, frame: int) -> Detection:
+    return Detection(frame=frame, bbox=np.asarray(c.bbox, float), centre_world=c.centre_world.copy(),
+                     size=c.size.copy(), area=int(c.area), label=int(min(c.labels)), labels=tuple(c.labels),
+                     depth=float(c.depth), depth_fraction=float(c.depth_fraction), centre_px=c.centre_px.copy())
+
+
+__all__ = ["TrackConfig", "Detection", "TrackResult", "TrackletInputError", "track_agents"]

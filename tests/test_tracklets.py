@@ -1,0 +1,207 @@
+"""Agent tracklets (agg/priors/tracklets.py): synthetic clips with exact ground truth and constructed scenes."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from agg.eval.scores import tracklet_scores
+from agg.priors.tracklets import TrackConfig, TrackletInputError, track_agents
+from agg.synth.corrupt import NoiseConfig, corrupt
+from agg.synth.scene import SceneConfig
+from agg.synth.suite import render_clip
+
+
+@pytest.fixture(scope="module")
+def clip():
+    """Seed 0, 20 frames at 160x96: 3 moving cars and 3 pedestrians (one of them only a few pixels tall)."""
+    gt = render_clip(SceneConfig(seed=0, frames=20, width=160, height=96))
+    moving = np.nonzero(gt.agent_moving)[0]
+    masks = np.isin(gt.instance, gt.agent_ids[moving])  # [T, H, W] GT moving-agent masks
+    depth = np.where(gt.depth_valid, gt.depth, 0.0).astype(np.float32)  # [T, H, W], 0 = none (sky)
+    return gt, moving, masks, depth
+
+
+def _gt_centres(gt, agents):
+    return np.where(gt.visible[agents][..., None], gt.boxes[agents][..., :3], np.nan)  # [G, T, 3]
+
+
+def _pred_centres(res):
+    tr = res.tracklets
+    return np.where(tr.valid[..., None], tr.boxes[..., :3], np.nan)  # [K, T, 3]
+
+
+def _track_of(res, gt, agent, frame):
+    """The track id (instance value) covering most pixels of a GT agent in a frame, 0 if none."""
+    vals = res.instance_masks[frame][gt.instance[frame] == gt.agent_ids[agent]]
+    vals = vals[vals > 0]
+    return int(np.bincount(vals).argmax()) if len(vals) else 0
+
+
+def test_synthetic_moving_agents_get_stable_tracks(clip):
+    gt, moving, masks, depth = clip
+    res = track_agents(masks, depth, gt.K, gt.world_from_camera, frames=(gt.rgb * 255).astype(np.uint8))
+    tr = res.tracklets
+    k, t = len(tr.ids), masks.shape[0]
+    assert tr.boxes.shape == (k, t, 7) and tr.valid.shape == (k, t) and tr.confidence.shape == (k, t)
+    assert res.boxes2d.shape == (k, t, 4) and res.centres2d.shape == (k, t, 2)
+    assert res.instance_masks.shape == masks.shape and res.instance_masks.dtype == np.int32
+    assert list(tr.ids) == list(range(1, k + 1)) and len(res.detections) == t
+    assert np.isnan(tr.boxes[~tr.valid]).all() and np.isfinite(tr.boxes[tr.valid]).all()
+    assert np.isnan(res.boxes2d[~tr.valid]).all() and ((tr.confidence >= 0) & (tr.confidence <= 1)).all()
+    # instance pixels lie inside the dynamic masks
+    assert not np.any((res.instance_masks > 0) & ~masks)
+    s = tracklet_scores(_pred_centres(res), _gt_centres(gt, moving), max_dist=1.5)
+    assert s.recall >= 0.8 and s.precision >= 0.8, (s.recall, s.precision)
+    # every moving car: one track id in every frame it is visible, boxes within 1 m, heading along the road
+    for car in moving[:3]:
+        ids = {_track_of(res, gt, car, i) for i in range(t) if gt.pixel_count[car, i] >= 30}
+        assert len(ids) == 1 and 0 not in ids, (car, ids)
+        kk = ids.pop() - 1
+        both = tr.valid[kk] & gt.visible[car]
+        err = np.linalg.norm(tr.boxes[kk, both, :3] - gt.boxes[car, both, :3], axis=-1)
+        assert np.median(err) < 1.0, err
+        dyaw = (tr.boxes[kk, both, 6] - gt.boxes[car, both, 6] + np.pi / 2) % np.pi - np.pi / 2
+        assert np.abs(np.degrees(dyaw)).max() < 10.0
+        assert tr.classes[kk] == "rigid" and (tr.boxes[kk, both, 3] > tr.boxes[kk, both, 4]).all()
+    # deterministic
+    again = track_agents(masks, depth, gt.K, gt.world_from_camera, frames=(gt.rgb * 255).astype(np.uint8))
+    assert np.array_equal(again.tracklets.boxes, tr.boxes, equal_nan=True)
+
+
+def test_rigid_cars_and_non_rigid_pedestrians(clip):
+    gt, moving, masks, depth = clip
+    res = track_agents(masks, depth, gt.K, gt.world_from_camera)
+    s = tracklet_scores(_pred_centres(res), _gt_centres(gt, moving), max_dist=1.5)
+    got = {gt.agent_labels[moving[g]]: [] for _, g in s.matches}
+    for p, g in s.matches:
+        got[gt.agent_labels[moving[g]]].append(res.tracklets.classes[p])
+    assert got["car"] == ["rigid"] * 3
+    assert len(got["pedestrian"]) >= 2 and set(got["pedestrian"]) == {"non-rigid"}
+    # non-rigid boxes: square footprint, taller than wide
+    for k, c in enumerate(res.tracklets.classes):
+        b = res.tracklets.boxes[k, res.tracklets.valid[k]]
+        if c == "non-rigid":
+            assert np.allclose(b[:, 3], b[:, 4]) and np.median(b[:, 5]) > np.median(b[:, 4])
+
+
+def test_two_frame_occlusion_keeps_id(clip):
+    gt, moving, masks, depth = clip
+    car, gap = moving[0], (8, 9)  # the car ahead in the ego lane
+    occluded = masks.copy()
+    for i in gap:
+        occluded[i][gt.instance[i] == gt.agent_ids[car]] = False
+    res = track_agents(occluded, depth, gt.K, gt.world_from_camera)
+    before, after = _track_of(res, gt, car, gap[0] - 1), _track_of(res, gt, car, gap[-1] + 1)
+    assert before > 0 and before == after
+    k = before - 1
+    assert not res.tracklets.valid[k, list(gap)].any() and np.isnan(res.tracklets.boxes[k, list(gap)]).all()
+    assert res.tracklets.valid[k, [gap[0] - 1, gap[-1] + 1]].all()
+    assert {_track_of(res, gt, car, i) for i in range(masks.shape[0]) if i not in gap} == {before}
+    # control: a tracker that forgets after one missed frame gives the car a new id after the gap
+    short = track_agents(occluded, depth, gt.K, gt.world_from_camera, TrackConfig(max_missed=1))
+    assert _track_of(short, gt, car, gap[0] - 1) != _track_of(short, gt, car, gap[-1] + 1)
+
+
+def test_cars_tracked_with_noisy_depth_and_poses(clip):
+    gt, moving, masks, _ = clip
+    pr = corrupt(gt, NoiseConfig(seed=0, depth_rel_sigma=0.1, depth_keep_fraction=0.5, camera_translation_max=0.25))
+    res = track_agents(masks, pr.depth, gt.K, pr.world_from_camera)
+    cars = moving[:3]
+    s = tracklet_scores(_pred_centres(res), _gt_centres(gt, cars), max_dist=2.0)
+    assert s.recall == 1.0
+
+
+def _crossing_scene(t: int = 30, w: int = 120, h: int = 80):
+    """Static camera; a near box (z = 10, red) drives right and a far box (z = 20, blue) drives left behind it.
+
+    Returns masks, depth, rgb, K, poses and the per-frame pixel masks of each box."""
+    K = np.array([[100.0, 0, (w - 1) / 2], [0, 100.0, (h - 1) / 2], [0, 0, 1]])
+    rows, cols = np.mgrid[0:h, 0:w]
+    depth = np.zeros((t, h, w), np.float32)
+    rgb = np.zeros((t, h, w, 3), np.uint8)
+    own = np.zeros((2, t, h, w), bool)
+    for i in range(t):
+        boxes = [(20.0, 6.0 - 0.4 * i, (30, 30, 200)), (10.0, -3.0 + 0.2 * i, (200, 30, 30))]  # (z, x, colour)
+        for a, (z, x, colour) in enumerate(boxes):
+            u0, u1 = K[0, 0] * (x - 0.9) / z + K[0, 2], K[0, 0] * (x + 0.9) / z + K[0, 2]  # 1.8 m wide
+            v0, v1 = K[1, 1] * (0.0 - 0.75) / z + K[1, 2], K[1, 1] * (0.0 + 0.75) / z + K[1, 2]  # 1.5 m tall
+            box = (cols >= u0) & (cols < u1) & (rows >= v0) & (rows < v1)
+            depth[i][box] = z  # the far box is drawn first, the near one over it
+            rgb[i][box] = colour
+            own[:, i][:, box] = False
+            own[a, i][box] = True
+    return depth > 0, depth, rgb, K, np.repeat(np.eye(4)[None], t, 0), own
+
+
+def test_crossing_agents_keep_distinct_ids():
+    masks, depth, rgb, K, poses, own = _crossing_scene()
+    # the two boxes form one connected component while they overlap
+    from cv2 import connectedComponents
+
+    assert min(connectedComponents(m.astype(np.uint8))[0] - 1 for m in masks) == 1
+    res = track_agents(masks, depth, K, poses, frames=rgb)
+    assert len(res.tracklets.ids) == 2
+    for a in range(2):
+        ids = set()
+        for i in range(masks.shape[0]):
+            vals = res.instance_masks[i][own[a, i]]
+            if own[a, i].sum() >= 6:
+                ids.add(int(np.bincount(vals).argmax()))
+        assert len(ids) == 1 and 0 not in ids, (a, ids)
+    # each track moves in its own direction along world x at its own depth
+    for k in range(2):
+        b = res.tracklets.boxes[k, res.tracklets.valid[k]]
+        direction = np.sign(b[-1, 0] - b[0, 0])
+        far = np.median(b[:, 2]) > 15
+        assert direction == (-1 if far else 1)
+
+
+def test_empty_masks_and_no_depth_give_no_tracks(clip):
+    gt, _, masks, depth = clip
+    res = track_agents(np.zeros_like(masks), depth, gt.K, gt.world_from_camera)
+    assert res.tracklets.boxes.shape == (0, masks.shape[0], 7) and res.tracklets.valid.shape == (0, masks.shape[0])
+    assert res.tracklets.classes == [] and not res.instance_masks.any()
+    assert all(len(d) == 0 for d in res.detections)
+    nodepth = track_agents(masks, np.zeros_like(depth), gt.K, gt.world_from_camera)
+    assert len(nodepth.tracklets.ids) == 0 and any(len(d) for d in nodepth.detections)
+    assert all(np.isnan(d.centre_world).all() for ds in nodepth.detections for d in ds)
+    # a blank frame in the middle (with RGB frames for the appearance cue): no track is valid there
+    blank = masks.copy()
+    blank[5] = False
+    res = track_agents(blank, depth, gt.K, gt.world_from_camera, frames=(gt.rgb * 255).astype(np.uint8))
+    assert len(res.tracklets.ids) > 0 and not res.tracklets.valid[:, 5].any() and res.tracklets.valid[:, 6].any()
+
+
+def test_bad_inputs_raise_clear_errors(clip):
+    gt, _, masks, depth = clip
+    P, K = gt.world_from_camera, gt.K
+    bad = [
+        dict(masks=masks[0]),
+        dict(depth=depth[:, :-1]),
+        dict(K=np.eye(2)),
+        dict(K=np.diag([0.0, 1.0, 1.0])),
+        dict(world_from_camera=P[:-1]),
+        dict(world_from_camera=np.where(np.eye(4, dtype=bool), np.nan, P)),
+        dict(frames=np.zeros((3, 4, 5, 3), np.uint8)),
+        dict(depth_confidence=np.ones((2, 2, 2))),
+        dict(config=TrackConfig(max_missed=-1)),
+        dict(config=TrackConfig(gate_probability=1.0)),
+    ]
+    for override in bad:
+        args = dict(masks=masks, depth=depth, K=K, world_from_camera=P) | override
+        with pytest.raises(TrackletInputError):
+            track_agents(**args)
+    assert issubclass(TrackletInputError, ValueError)
+
+
+def test_result_writes_to_a_bundle(clip, tmp_path):
+    from agg.io.bundle import SceneBundle
+
+    gt, _, masks, depth = clip
+    res = track_agents(masks, depth, gt.K, gt.world_from_camera)
+    b = SceneBundle.create(tmp_path / "scene", (gt.rgb * 255).astype(np.uint8), gt.timestamps_us, gt.K)
+    b.write_tracklets(res.tracklets)
+    back = SceneBundle.load(tmp_path / "scene").tracklets
+    assert list(back.ids) == list(res.tracklets.ids) and back.classes == res.tracklets.classes
+    assert np.array_equal(np.asarray(back.valid), res.tracklets.valid)
