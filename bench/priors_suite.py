@@ -56,11 +56,12 @@ def main() -> int:
     ap.add_argument("--frames", type=int, default=24)
     ap.add_argument("--width", type=int, default=320)
     ap.add_argument("--height", type=int, default=192)
+    ap.add_argument("--keep", type=Path, help="write the bundles here (kept) instead of a temporary folder")
     args = ap.parse_args()
     rows = []
     with tempfile.TemporaryDirectory(prefix="agg_priors_suite_") as tmp:
         for seed in (int(s) for s in args.seeds.split(",")):
-            row = run_seed(seed, args.frames, args.width, args.height, Path(tmp))
+            row = run_seed(seed, args.frames, args.width, args.height, args.keep or Path(tmp))
             rows.append(row)
             print(json.dumps(row), flush=True)
     keys = ("registered_fraction", "ate_percent_of_path", "mask_iou_moving", "mask_iou_all", "tracklet_recall",

