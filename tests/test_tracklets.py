@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 
 from agg.eval.scores import tracklet_scores
+from agg.priors.tracklet_ground import camera_height, ground_planes
 from agg.priors.tracklets import TrackConfig, TrackletInputError, track_agents
 from agg.synth.corrupt import NoiseConfig, corrupt
 from agg.synth.scene import SceneConfig
@@ -98,9 +100,25 @@ def test_two_frame_occlusion_keeps_id(clip):
     assert not res.tracklets.valid[k, list(gap)].any() and np.isnan(res.tracklets.boxes[k, list(gap)]).all()
     assert res.tracklets.valid[k, [gap[0] - 1, gap[-1] + 1]].all()
     assert {_track_of(res, gt, car, i) for i in range(masks.shape[0]) if i not in gap} == {before}
-    # control: a tracker that forgets after one missed frame gives the car a new id after the gap
-    short = track_agents(occluded, depth, gt.K, gt.world_from_camera, TrackConfig(max_missed=1))
+    # control: a tracker that forgets after one missed frame (and never re-links) gives a new id after the gap
+    short = track_agents(occluded, depth, gt.K, gt.world_from_camera, TrackConfig(max_missed=1, relink_max_gap=0))
     assert _track_of(short, gt, car, gap[0] - 1) != _track_of(short, gt, car, gap[-1] + 1)
+
+
+def test_track_lost_longer_than_max_missed_is_relinked(clip):
+    gt, moving, masks, depth = clip
+    car, gap = moving[0], range(7, 12)  # 5 frames: longer than max_missed = 3, the filter's track ends
+    occluded = masks.copy()
+    for i in gap:
+        occluded[i][gt.instance[i] == gt.agent_ids[car]] = False
+    res = track_agents(occluded, depth, gt.K, gt.world_from_camera)
+    before, after = _track_of(res, gt, car, gap[0] - 1), _track_of(res, gt, car, gap[-1] + 1)
+    assert before > 0 and before == after
+    assert not res.tracklets.valid[before - 1, list(gap)].any()
+    # the other moving cars are not joined to it, and without re-linking the car gets a new id after the gap
+    assert all(_track_of(res, gt, c, 15) != before for c in moving[1:3])
+    plain = track_agents(occluded, depth, gt.K, gt.world_from_camera, TrackConfig(relink_max_gap=0))
+    assert _track_of(plain, gt, car, gap[0] - 1) != _track_of(plain, gt, car, gap[-1] + 1)
 
 
 def test_cars_tracked_with_noisy_depth_and_poses(clip):
@@ -187,6 +205,8 @@ def test_bad_inputs_raise_clear_errors(clip):
         dict(depth_confidence=np.ones((2, 2, 2))),
         dict(config=TrackConfig(max_missed=-1)),
         dict(config=TrackConfig(gate_probability=1.0)),
+        dict(config=TrackConfig(contact_ratio=1.0)),
+        dict(config=TrackConfig(min_track_fraction=1.5)),
     ]
     for override in bad:
         args = dict(masks=masks, depth=depth, K=K, world_from_camera=P) | override
@@ -205,3 +225,95 @@ def test_result_writes_to_a_bundle(clip, tmp_path):
     back = SceneBundle.load(tmp_path / "scene").tracklets
     assert list(back.ids) == list(res.tracklets.ids) and back.classes == res.tracklets.classes
     assert np.array_equal(np.asarray(back.valid), res.tracklets.valid)
+
+
+# --------------------------------------------------------------------------------------------------------------
+# ground rule, neck cut, merge across a gap, track confirmation
+
+
+def test_road_plane_gives_the_camera_height(clip):
+    gt, _, masks, depth = clip
+    planes = ground_planes(depth, None, masks, 0.5)
+    heights = [camera_height(p, gt.K[1, 1]) for p in planes]
+    assert np.allclose(heights, 1.6, rtol=0.05), heights  # SceneConfig.camera_height
+
+
+def test_static_blob_above_the_horizon_is_not_tracked(clip):
+    gt, moving, masks, depth = clip
+    blob = np.zeros_like(masks)
+    blob[:, 20:32, 10:22] = True  # a building facade above the horizon (row ~47) in every frame
+    assert (gt.semantic[:, 20:32, 10:22] == 4).all()
+    res = track_agents(masks | blob, depth, gt.K, gt.world_from_camera)
+    assert not res.instance_masks[blob].any()
+    on_blob = [d for ds in res.detections for d in ds if d.bbox[1] == 20 and d.bbox[0] == 10]
+    assert len(on_blob) == masks.shape[0] and all(d.on_ground is False for d in on_blob)
+    s = tracklet_scores(_pred_centres(res), _gt_centres(gt, moving), max_dist=1.5)
+    assert s.recall >= 0.8 and s.precision >= 0.8, (s.recall, s.precision)
+    # control: without the ground rule the static blob (it has depth) becomes a track
+    off = track_agents(masks | blob, depth, gt.K, gt.world_from_camera, TrackConfig(ground_rule=False))
+    assert off.instance_masks[blob].any()
+
+
+def _road_scene(t: int = 12, w: int = 120, h: int = 80, gap_depth: float | None = None, neck: bool = False,
+                marking: bool = False, flicker: bool = False):
+    """Static camera 1.5 m over a flat road (fy = 100); two 1.8 x 1.5 m boxes side by side at the same depth
+    (z = 10 + 0.2 i) with a 0.2 m gap. gap_depth: a pole in the gap at that depth (not in the mask); neck: a
+    2-px strip of mask on the road joins the boxes; marking: a mask blob on the road near the camera in every
+    frame; flicker: a third box (x = -5 m) in 3 frames only. Returns masks, depth, K, poses, the box masks."""
+    K = np.array([[100.0, 0, (w - 1) / 2], [0, 100.0, (h - 1) / 2], [0, 0, 1]])
+    rows, cols = np.mgrid[0:h, 0:w]
+    road = np.where(rows > K[1, 2], 150.0 / np.maximum(rows - K[1, 2], 1e-9), 80.0)  # z = fy h / (v - cy); far wall
+    depth = np.repeat(road[None], t, 0).astype(np.float32)
+    masks = np.zeros((t, h, w), bool)
+    own = np.zeros((2, t, h, w), bool)
+    for i in range(t):
+        z = 10.0 + 0.2 * i
+        v0, v1 = K[1, 2], K[1, 2] + 100.0 * 1.5 / z  # top at camera height, bottom on the road
+        boxes = [(-1.0, 0), (1.0, 1)] + ([(-5.0, 2)] if flicker and i in (3, 4, 5) else [])
+        for x, a in boxes:
+            u0, u1 = K[0, 2] + 100.0 * (x - 0.9) / z, K[0, 2] + 100.0 * (x + 0.9) / z
+            box = (cols >= u0) & (cols < u1) & (rows >= v0) & (rows < v1)
+            depth[i][box], masks[i][box] = z, True
+            if a < 2:
+                own[a, i] = box
+        gap = ~masks[i] & (cols >= K[0, 2] - 100.0 * 0.1 / z) & (cols < K[0, 2] + 100.0 * 0.1 / z)
+        if gap_depth is not None:
+            depth[i][gap & (rows >= v0) & (rows < v1)] = gap_depth
+        if neck:
+            masks[i][gap & (rows >= v1 - 2) & (rows < v1)] = True
+        if marking:
+            masks[i, 72:76, 20:32] = True  # flat on the road, ~4.4 m ahead
+    return masks, depth, K, np.repeat(np.eye(4)[None], t, 0), own
+
+
+def _ids_per_box(res, own):
+    return [{int(np.bincount(res.instance_masks[i][own[a, i]]).argmax()) for i in range(own.shape[1])}
+            for a in range(2)]
+
+
+def test_side_by_side_agents_are_not_joined_by_a_road_gap_or_a_mask_strip():
+    masks, depth, K, poses, own = _road_scene()
+    res = track_agents(masks, depth, K, poses)  # the gap shows the road behind: no occluder, no merge
+    ids = _ids_per_box(res, own)
+    assert len(res.tracklets.ids) == 2 and ids[0] != ids[1] and all(len(s) == 1 and 0 not in s for s in ids)
+    # a pole in front fills the gap: the parts are merged as one object cut by an occluder
+    masks, depth, K, poses, own = _road_scene(gap_depth=5.0)
+    res = track_agents(masks, depth, K, poses)
+    assert len(res.tracklets.ids) == 1 and _ids_per_box(res, own) == [{1}, {1}]
+    # a thin strip of mask on the road joins the boxes into one component: cut at the neck
+    masks, depth, K, poses, own = _road_scene(neck=True)
+    assert max(cv2.connectedComponents(m.astype(np.uint8))[0] - 1 for m in masks) == 1
+    ids = _ids_per_box(track_agents(masks, depth, K, poses), own)
+    assert ids[0] != ids[1] and all(len(s) == 1 and 0 not in s for s in ids)
+    assert len(track_agents(masks, depth, K, poses, TrackConfig(split_neck_ratio=0)).tracklets.ids) == 1
+
+
+def test_short_lived_and_flat_road_blobs_are_not_tracks():
+    masks, depth, K, poses, _ = _road_scene(t=20, marking=True, flicker=True)  # a track needs 4 hits
+    res = track_agents(masks, depth, K, poses)
+    assert len(res.tracklets.ids) == 2 and not res.instance_masks[:, 72:76, 20:32].any()
+    marking = [d for ds in res.detections for d in ds if d.bbox[1] == 72]
+    assert len(marking) == masks.shape[0] and all(d.on_ground and d.ground_area < 0.1 for d in marking)
+    # controls: the marking is tracked without the area rule, the 3-frame box without the clip-fraction rule
+    assert len(track_agents(masks, depth, K, poses, TrackConfig(min_ground_area=0)).tracklets.ids) == 3
+    assert len(track_agents(masks, depth, K, poses, TrackConfig(min_track_fraction=0)).tracklets.ids) == 3

@@ -218,3 +218,54 @@ def smooth_sequence(z: np.ndarray, R: np.ndarray, *, accel_var: float, init_vel_
         xs, ps, _, _ = kf.rts_smoother(xs, ps, Fs=fs, Qs=qs)
     state[first:last + 1], cov[first:last + 1] = xs, ps
     return state, cov
+
+
+def relink(histories: list[TrackHistory], *, max_gap: int, gate: float, accel_var: float) -> list[TrackHistory]:
+    """Join tracks broken by a gap longer than the tracker's ``max_missed`` (an agent lost for a few frames).
+
+    A track B that starts ``g`` steps (1 < g <= ``max_gap``) after a track A ended, with no step in common, is
+    the same agent when A's smoothed last state, propagated over the gap with the constant-velocity model
+    (covariance grown by the process noise), meets B's smoothed first position within the chi-square ``gate`` on
+    the squared Mahalanobis distance (covariance: propagated A plus B's). Pairs are joined greedily, closest
+    first; each track joins at most one successor and one predecessor. The joined track keeps A's start (its
+    id order), both tracks' measurements and states, and NaN states in the gap (coasted, invalid there).
+    """
+    if max_gap < 2 or len(histories) < 2:
+        return list(histories)
+    spans = []
+    for h in histories:
+        steps = np.flatnonzero(h.assoc >= 0)
+        spans.append((int(steps[0]), int(steps[-1])))
+    pairs = []
+    for a, ha in enumerate(histories):
+        for b, hb in enumerate(histories):
+            gap = spans[b][0] - spans[a][1]
+            if a == b or not 1 < gap <= max_gap:
+                continue
+            x, p = ha.state[spans[a][1]], ha.cov[spans[a][1]]  # [6], [6, 6]
+            f, q = transition(float(gap)), process_noise(float(gap), accel_var)
+            x, p = f @ x, f @ p @ f.T + q
+            s = p[:3, :3] + hb.cov[spans[b][0], :3, :3]
+            y = hb.state[spans[b][0], :3] - x[:3]
+            d2 = float(y @ np.linalg.solve(s, y))
+            if d2 <= gate:
+                pairs.append((d2, a, b))
+    nxt: dict[int, int] = {}
+    prv: dict[int, int] = {}
+    for _, a, b in sorted(pairs):
+        if a not in nxt and b not in prv:
+            nxt[a], prv[b] = b, a
+    out = []
+    for a in range(len(histories)):
+        if a in prv:
+            continue  # joined into its predecessor's chain
+        h = histories[a]
+        assoc, state, cov, hits = h.assoc.copy(), h.state.copy(), h.cov.copy(), h.hits
+        while a in nxt:
+            a = nxt[a]
+            hb, (s0, s1) = histories[a], spans[a]
+            assoc[s0:s1 + 1] = hb.assoc[s0:s1 + 1]
+            state[s0:s1 + 1], cov[s0:s1 + 1] = hb.state[s0:s1 + 1], hb.cov[s0:s1 + 1]
+            hits += hb.hits
+        out.append(TrackHistory(assoc=assoc, state=state, cov=cov, hits=hits))
+    return out

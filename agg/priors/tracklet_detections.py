@@ -1,4 +1,5 @@
-"""Per-frame detections of the agent tracklets: mask components, depth-layer splits, merged parts, 3D lifting.
+"""Per-frame detections of the agent tracklets: mask components, neck cuts, depth-layer splits, merged parts, the
+ground rule (``agg/priors/tracklet_ground.py``) and the upright 3D lifting.
 
 Used by ``agg/priors/tracklets.py`` (``track_agents``); the rules and thresholds (``TrackConfig`` fields) are in
 docs/PRIORS.md ("Agent tracklets"). Pixel (row i, column j) is the image point (u, v) = (j, i) (OpenCV).
@@ -11,6 +12,9 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 from scipy.ndimage import distance_transform_edt
+
+from agg.priors.tracklet_ground import (FLOATING, GROUNDED, UNKNOWN, column_bottoms, column_medians,
+                                        contact_verdicts, road_inverse_depth)
 
 
 @dataclass
@@ -31,6 +35,8 @@ class Candidate:
     points_world: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # [m, 3] visible points
     size: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))  # [3] visible extent (view, lateral, up)
     appearance: np.ndarray | None = None  # [bins^3] normalised RGB histogram of its pixels (with an image)
+    on_ground: bool | None = None  # ground rule: True stands on the road, False does not, None: not decided
+    ground_area: float = float("nan")  # pixel area / (footprint row - horizon row)^2: area in camera heights^2
 
 
 def _valid_depth(d: np.ndarray, c: np.ndarray | None, min_conf: float) -> np.ndarray:
@@ -115,8 +121,54 @@ def _split_layers(rows, cols, d, ok, labels, min_area, cfg, levels: int = 2) -> 
     return out
 
 
-def _merge_parts(parts: list[Candidate], depth_of: list[float], cfg) -> list[Candidate]:
-    """Union of same-frame parts at the same depth whose boxes are separated by a small gap (a static occluder)."""
+def _split_necks(rows: np.ndarray, cols: np.ndarray, labels: list[int], min_area: int, cfg,
+                 levels: int = 2) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Cut a component at a thin neck between two tall parts (two agents side by side joined by a strip of mask
+    on the road): the column whose pixel count is the smallest fraction of the tallest column on *both* sides;
+    cut when that fraction is <= ``split_neck_ratio`` and each side keeps >= min_area pixels and >= 3 columns.
+    A leg gap or a car's underbody removes far less than that. Recursive (at most 2 levels)."""
+    whole = [(rows, cols)]
+    if cfg.split_neck_ratio <= 0 or levels <= 0 or len(rows) < 2 * min_area:
+        return whole
+    ucol, inv = np.unique(cols, return_inverse=True)
+    if len(ucol) < 7:
+        return whole
+    thick = np.zeros(ucol[-1] - ucol[0] + 1)  # [w] pixels per column (0 in a gap)
+    np.add.at(thick, cols - ucol[0], 1)
+    left, right = np.maximum.accumulate(thick), np.maximum.accumulate(thick[::-1])[::-1]
+    j = np.arange(3, len(thick) - 3)  # 3 columns at least on each side
+    ratio = thick[j] / np.minimum(left[j - 1], right[j + 1])
+    k = int(j[np.argmin(ratio)])
+    if ratio.min() > cfg.split_neck_ratio:
+        return whole
+    a = cols - ucol[0] < k
+    if a.sum() < min_area or (~a).sum() < min_area:
+        return whole
+    return [part for sel in (a, ~a) for part in _split_necks(rows[sel], cols[sel], labels, min_area, cfg, levels - 1)]
+
+
+def _gap_in_front(box_a, box_b, horizontal: bool, depth: np.ndarray, ok_map: np.ndarray, mask: np.ndarray,
+                  d: float, cfg) -> bool:
+    """Whether the unmasked pixels between two boxes (x0, y0, x1, y1) that have depth are nearer than d (by
+    ``occlusion_ratio``): an occluder in front; True when none of them has depth (cannot tell)."""
+    (ax0, ay0, ax1, ay1), (bx0, by0, bx1, by1) = box_a, box_b
+    if horizontal:
+        x0, x1 = sorted((min(ax1, bx1), max(ax0, bx0)))
+        y0, y1 = max(ay0, by0), min(ay1, by1)
+    else:
+        y0, y1 = sorted((min(ay1, by1), max(ay0, by0)))
+        x0, x1 = max(ax0, bx0), min(ax1, bx1)
+    sel = ok_map[y0:y1, x0:x1] & ~mask[y0:y1, x0:x1]
+    if sel.sum() < 3:
+        return True
+    return bool(np.median(depth[y0:y1, x0:x1][sel]) < d / cfg.occlusion_ratio)
+
+
+def _merge_parts(parts: list[Candidate], depth_of: list[float], cfg, depth: np.ndarray, ok_map: np.ndarray,
+                 mask: np.ndarray) -> list[Candidate]:
+    """Union of same-frame parts at the same depth whose boxes are separated by a small gap (a static occluder):
+    where the depth prior sees the gap, it must be nearer than the parts (a pole, not the road between two cars).
+    Parts of one mask component (cut at a neck or a depth edge on purpose) are not merged again."""
     n = len(parts)
     parent = list(range(n))
 
@@ -130,6 +182,8 @@ def _merge_parts(parts: list[Candidate], depth_of: list[float], cfg) -> list[Can
     for a in range(n):
         for b in range(a + 1, n):
             da, db = depth_of[a], depth_of[b]
+            if set(parts[a].labels) & set(parts[b].labels):
+                continue
             if not (np.isfinite(da) and np.isfinite(db)) or abs(np.log(da / db)) > cfg.merge_depth_ratio:
                 continue
             (ax0, ay0, ax1, ay1), (bx0, by0, bx1, by1) = boxes[a], boxes[b]
@@ -138,7 +192,8 @@ def _merge_parts(parts: list[Candidate], depth_of: list[float], cfg) -> list[Can
             lap_x, lap_y = -gap_x / min(wa, wb), -gap_y / min(ha, hb)
             near_x = gap_x <= cfg.merge_gap_fraction * min(wa, wb) and lap_y >= cfg.merge_min_overlap
             near_y = gap_y <= cfg.merge_gap_fraction * min(ha, hb) and lap_x >= cfg.merge_min_overlap
-            if near_x or near_y:
+            if (near_x or near_y) and _gap_in_front(boxes[a], boxes[b], near_x, depth, ok_map, mask,
+                                                    min(da, db), cfg):
                 parent[find(b)] = find(a)
     groups: dict[int, list[int]] = {}
     for a in range(n):
@@ -157,58 +212,135 @@ def _percentile_extent(s: np.ndarray, cfg) -> float:
     return float((b - a) / ((hi - lo) / 100.0))
 
 
-def _plane_depth(u: np.ndarray, v: np.ndarray, d: np.ndarray, u_out: np.ndarray, v_out: np.ndarray) -> np.ndarray:
-    """Depth at (u_out, v_out) [m] from a trimmed least-squares plane 1/d = a + b u + c v through samples [n]."""
-    uc, vc = u.mean(), v.mean()
-    A = np.stack([np.ones_like(u), u - uc, v - vc], 1)  # [n, 3]
+def _upright_depth(u: np.ndarray, d: np.ndarray, weight: np.ndarray, u_out: np.ndarray) -> np.ndarray:
+    """Depth at columns u_out [m] of an upright surface, ``1/d = a + b u``: a trimmed weighted least-squares line
+    through column depths d [k] at columns u [k] (an agent's faces are vertical, so its depth depends on the
+    column only); a constant (the weighted median) with fewer than 3 columns."""
     y = 1.0 / d
+    if len(u) < 3 or np.ptp(u) <= 0:
+        order = np.argsort(y)
+        cum = np.cumsum(weight[order])
+        return np.full(len(u_out), 1.0 / y[order][np.searchsorted(cum, 0.5 * cum[-1])])
+    uc = float(np.average(u, weights=weight))
+    A = np.stack([np.ones_like(u), u - uc], 1)  # [k, 2]
+    sw = np.sqrt(weight)
     keep = np.ones(len(y), bool)
     for _ in range(2):  # fit, drop residuals beyond 2.5 robust sigmas, refit
-        coef = np.linalg.lstsq(A[keep], y[keep], rcond=None)[0]
+        coef = np.linalg.lstsq(A[keep] * sw[keep, None], y[keep] * sw[keep], rcond=None)[0]
         res = np.abs(y - A @ coef)
-        sigma = 1.4826 * np.median(res[keep]) + 1e-12
-        keep = res <= 2.5 * sigma
+        keep = res <= 2.5 * (1.4826 * np.median(res[keep]) + 1e-12)
         if keep.sum() < 3:
             break
-    inv = coef[0] + coef[1] * (u_out - uc) + coef[2] * (v_out - vc)
-    lo, hi = 1.0 / d.max(), 1.0 / d.min()  # stay within the observed depth range
-    return 1.0 / np.clip(inv, lo, hi)
+    inv = coef[0] + coef[1] * (u_out - uc)
+    return 1.0 / np.clip(inv, y.min(), y.max())  # stay within the observed depth range
+
+
+def _summary(c: Candidate) -> None:
+    """Area, pixel box and centroid of c from its pixels."""
+    c.area = int(len(c.rows))
+    c.bbox = (int(c.cols.min()), int(c.rows.min()), int(c.cols.max()) + 1, int(c.rows.max()) + 1)
+    c.centre_px = np.array([c.cols.mean(), c.rows.mean()])
+
+
+def _drop_columns(c: Candidate, drop: np.ndarray, inv: np.ndarray, d_px: np.ndarray, ok: np.ndarray):
+    """Remove the pixels of columns drop [m] (bool) from c; returns its per-pixel depth, validity and column index
+    re-indexed to the kept columns."""
+    keep_px = ~drop[inv]
+    c.rows, c.cols = c.rows[keep_px], c.cols[keep_px]
+    _summary(c)
+    c.depth_fraction = float(ok[keep_px].mean())
+    return d_px[keep_px], ok[keep_px], np.cumsum(~drop)[inv[keep_px]] - 1
 
 
 def _lift(c: Candidate, depth: np.ndarray, ok_map: np.ndarray, K_inv: np.ndarray, world_from_camera: np.ndarray,
-          cfg) -> Candidate:
-    """Fill the 2D summary of c, and its 3D fields when it has enough valid depth."""
-    rows, cols = c.rows, c.cols
-    c.area = int(len(rows))
-    x0, y0, x1, y1 = int(cols.min()), int(rows.min()), int(cols.max()) + 1, int(rows.max()) + 1
-    c.bbox = (x0, y0, x1, y1)
-    c.centre_px = np.array([cols.mean(), rows.mean()])
-    d = depth[rows, cols].astype(float)
-    ok = ok_map[rows, cols]
+          cfg, plane: np.ndarray | None = None) -> Candidate:
+    """Fill the 2D summary of c, its ground verdict, and its 3D fields when it stands on the ground (or no road
+    plane is known) and has depth. plane: the frame's road plane (a, b, c) of inverse depth, or None.
+
+    Ground rule: the verdicts (``contact_verdicts``) of its footprint, the columns whose contact lies in its
+    lowest ``contact_band``, decide: more FLOATING than ``max_floating_fraction`` (by pixels), and c is no agent
+    (``on_ground`` False, not lifted); else FLOATING columns anywhere (a blob merged at the side) are dropped.
+    Columns standing deeper than ``max_column_depth_ratio`` x the footprint's depth are dropped too (a tree line
+    above and behind an agent, joined to its mask): a GROUNDED or UNKNOWN column stands where the road is at its
+    contact, another at its own depth.
+    Upright model: each column of c is a vertical segment at the depth read near its contact (the lowest
+    ``contact_band`` of c's height in that column; else the road's depth at a GROUNDED contact; else the column's
+    valid depth), at most the road's depth at its contact (an object seen there is not under the road), and an
+    upright line ``1/d = a + b u`` through those column depths gives every pixel's depth."""
+    _summary(c)
+    d_px = depth[c.rows, c.cols].astype(float)
+    ok = ok_map[c.rows, c.cols]
     c.depth_fraction = float(ok.mean())
-    if ok.sum() < max(3, cfg.min_depth_fraction * c.area):
+    ucol, bottom, inv = column_bottoms(c.rows, c.cols)  # [m], [m], [n]
+    band = max(1, int(round(cfg.contact_band * (c.bbox[3] - c.bbox[1]))))
+    own = column_medians(d_px, inv, ok & (c.rows > bottom[inv] - band), len(ucol))  # [m] depth at the contact
+    ground = plane is not None and cfg.ground_rule
+    road = np.full(len(ucol), np.inf)  # [m] the road's depth at each contact (inf: none)
+    verdict = np.full(len(ucol), UNKNOWN)
+    if ground:
+        verdict = contact_verdicts(ucol, bottom, own, depth, ok_map, plane, cfg)  # [m]
+        counts = np.bincount(inv, minlength=len(ucol))  # [m] pixels per column
+        known = (bottom >= bottom.max() - band + 1) & (verdict != UNKNOWN)  # decided columns of the footprint
+        floating = verdict == FLOATING
+        if (known.any() and counts[known & floating].sum() > cfg.max_floating_fraction * counts[known].sum()) \
+                or (~floating[inv]).sum() < 3:
+            c.on_ground = False
+            return c
+        c.on_ground = True if known.any() else None
+        if floating.any():  # drop the columns that rest on something else (a blob merged at the side)
+            d_px, ok, inv = _drop_columns(c, floating, inv, d_px, ok)
+            ucol, bottom, own, verdict = ucol[~floating], bottom[~floating], own[~floating], verdict[~floating]
+        w_road = road_inverse_depth(plane, ucol.astype(float), bottom + 0.5)
+        road = np.where(w_road > 0, 1.0 / np.where(w_road > 0, w_road, 1.0), np.inf)
+        fill = (verdict == GROUNDED) & ~np.isfinite(own)  # no depth of its own: the road's at the contact
+        own[fill] = road[fill]
+    rest = ~np.isfinite(own)
+    if rest.any():
+        own[rest] = column_medians(d_px, inv, ok, len(ucol))[rest]
+    own = np.minimum(own, road)  # nothing seen below the horizon is under the road
+    counts = np.bincount(inv, minlength=len(ucol))
+    have = np.isfinite(own) & (own > 0)
+    foot = have & (bottom >= bottom.max() - band + 1)
+    if foot.any():  # columns standing far behind the footprint belong to something else (a tree line behind)
+        reach = np.where((verdict == GROUNDED) | (verdict == UNKNOWN), road, own)  # where their contact is
+        reach = np.where(np.isfinite(reach), reach, own)  # on the road (visible or assumed), else their depth
+        far = reach > cfg.max_column_depth_ratio * np.median(np.repeat(own[foot], counts[foot]))
+        if far.any() and (~far[inv]).sum() >= 3:
+            d_px, ok, inv = _drop_columns(c, far, inv, d_px, ok)
+            ucol, bottom, own, have, road = ucol[~far], bottom[~far], own[~far], have[~far], road[~far]
+            counts = np.bincount(inv, minlength=len(ucol))
+    if ground:
+        w_foot = 1.0 / float(np.median(road[bottom >= bottom.max() - band + 1]))  # the road at the footprint
+        if w_foot > 0:  # an agent of 3D area A there covers A / h_cam^2 x (v_foot - v_horizon)^2 pixels
+            c.ground_area = float(c.area * (plane[1] / w_foot) ** 2)
+    if counts[have].sum() < max(3, cfg.min_depth_fraction * c.area) or (ok.sum() < 3 and not c.on_ground):
         return c
-    stat = float(np.percentile(d[ok], cfg.depth_percentile))
-    ok &= (d >= stat / cfg.depth_outlier_ratio) & (d <= stat * cfg.depth_outlier_ratio)
+    med = float(np.median(np.repeat(own[have], counts[have])))
+    have &= (own >= med / cfg.depth_outlier_ratio) & (own <= med * cfg.depth_outlier_ratio)
+    col_depth = _upright_depth(ucol[have].astype(float), own[have], counts[have].astype(float), ucol.astype(float))
+    z_px = col_depth[inv]  # [n] every pixel at its column's depth
+    stat = float(np.percentile(z_px, cfg.depth_percentile))
     c.depth, c.lifted = stat, True
     R, t = world_from_camera[:3, :3], world_from_camera[:3, 3]
     ray = K_inv @ np.array([c.centre_px[0], c.centre_px[1], 1.0])
     c.centre_world = R @ (ray * stat) + t
     h, w = depth.shape
+    x0, y0, x1, y1 = c.bbox
     cut = x0 == 0 or y0 == 0 or x1 == w or y1 == h  # cut by the image border: its visible centre is biased
     f = cfg.border_sigma_factor if cut else 1.0
     cov_cam = np.diag([(f * cfg.lateral_sigma * stat) ** 2] * 2 + [(f * cfg.depth_sigma * stat) ** 2])
     c.cov_world = R @ cov_cam @ R.T
-    # visible points: every pixel of c back-projected with a robust plane fit of its inverse depth (exact for a
-    # planar surface, smooths per-pixel noise), or with the raw depth of its inlier pixels (plane_fit=False)
+    # visible points: every pixel back-projected at its column's upright depth (plane_fit), or the raw depth of
+    # its valid pixels near that depth (plane_fit=False)
     if cfg.plane_fit:
         sel = np.arange(0, c.area, max(1, int(np.ceil(c.area / cfg.max_points))))
-        u, v = cols[sel].astype(float), rows[sel].astype(float)
-        z = _plane_depth(cols[ok].astype(float), rows[ok].astype(float), d[ok], u, v)
+        u, v, z = c.cols[sel].astype(float), c.rows[sel].astype(float), z_px[sel]
     else:
-        sel = np.nonzero(ok)[0]
+        sel = np.nonzero(ok & (d_px >= z_px / cfg.depth_outlier_ratio) & (d_px <= z_px * cfg.depth_outlier_ratio))[0]
+        sel = sel if len(sel) >= 3 else np.arange(c.area)
         sel = sel[::max(1, int(np.ceil(len(sel) / cfg.max_points)))]
-        u, v, z = cols[sel].astype(float), rows[sel].astype(float), d[sel]
+        u, v = c.cols[sel].astype(float), c.rows[sel].astype(float)
+        z = np.where(ok[sel], d_px[sel], z_px[sel])
     pts_cam = (K_inv @ np.stack([u, v, np.ones_like(u)], 0)) * z[None]  # [3, m]
     c.points_world = (R @ pts_cam).T + t  # [m, 3]
     view = c.centre_world - t
@@ -234,9 +366,10 @@ def colour_histogram(image: np.ndarray, rows: np.ndarray, cols: np.ndarray, bins
 
 
 def frame_candidates(mask: np.ndarray, depth: np.ndarray, conf: np.ndarray | None, image: np.ndarray | None,
-                     K_inv: np.ndarray, world_from_camera: np.ndarray, min_area: int, cfg) -> list[Candidate]:
+                     K_inv: np.ndarray, world_from_camera: np.ndarray, min_area: int, cfg,
+                     plane: np.ndarray | None = None) -> list[Candidate]:
     """Detections of one frame: mask [H, W] bool, depth [H, W], conf [H, W] or None, image [H, W, 3] or None,
-    K_inv [3, 3], world_from_camera [4, 4]."""
+    K_inv [3, 3], world_from_camera [4, 4], plane: the road plane (a, b, c) of inverse depth or None."""
     n, labels, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=cfg.connectivity)
     ok_map = _valid_depth(depth, conf, cfg.min_depth_confidence)  # [H, W]
     parts: list[Candidate] = []
@@ -246,7 +379,8 @@ def frame_candidates(mask: np.ndarray, depth: np.ndarray, conf: np.ndarray | Non
             continue
         rr, cc = np.nonzero(labels[y:y + h, x:x + w] == lab)
         rr, cc = rr + y, cc + x
-        parts += _split_layers(rr, cc, depth[rr, cc].astype(float), ok_map[rr, cc], [lab], min_area, cfg)
+        for r2, c2 in _split_necks(rr, cc, [lab], min_area, cfg):
+            parts += _split_layers(r2, c2, depth[r2, c2].astype(float), ok_map[r2, c2], [lab], min_area, cfg)
     parts = [p for p in parts if len(p.rows) >= min_area]
     if cfg.merge_parts and len(parts) > 1:
         stat = []
@@ -255,8 +389,8 @@ def frame_candidates(mask: np.ndarray, depth: np.ndarray, conf: np.ndarray | Non
             enough = ok.sum() >= max(3, cfg.min_depth_fraction * len(p.rows))
             stat.append(float(np.percentile(depth[p.rows, p.cols][ok], cfg.depth_percentile)) if enough
                         else float("nan"))
-        parts = _merge_parts(parts, stat, cfg)
-    out = [_lift(p, depth, ok_map, K_inv, world_from_camera, cfg) for p in parts]
+        parts = _merge_parts(parts, stat, cfg, depth, ok_map, mask)
+    out = [_lift(p, depth, ok_map, K_inv, world_from_camera, cfg, plane) for p in parts]
     if image is not None:
         for p in out:
             p.appearance = colour_histogram(image, p.rows, p.cols, cfg.appearance_bins)

@@ -5,20 +5,27 @@
 docs/PRIORS.md ("Agent tracklets"):
 
 1. **Detections** per frame (``agg/priors/tracklet_detections.py``): OpenCV connected components of the mask,
-   dropped below a minimum area; a component whose depth is two-layered (an agent in front of another: bimodal
-   log depth *and* a depth edge where the layers meet) is split; parts of one object cut apart by a static
-   occluder (nearby boxes at the same depth) are merged.
-2. **Lifting**: the depth statistic (a percentile of the component's valid depth) back-projects the component's
-   pixel centroid to the *visible-surface centre* (the measurement); the component's pixels, back-projected with
-   a robust plane fit of their inverse depth, are its visible 3D points.
-3. **Tracking** (``agg/priors/kalman.py``): constant-velocity Kalman filters in world x, y, z, chi-square gating
+   dropped below a minimum area; a component is cut at a thin neck (two agents joined by a strip of mask) and
+   split where its depth is two-layered (an agent in front of another: bimodal log depth *and* a depth edge where
+   the layers meet); parts of one object cut apart by a static occluder (nearby boxes at the same depth, the gap
+   nearer where the depth sees it) are merged.
+2. **Ground rule** (``agg/priors/tracklet_ground.py``): the road plane of the depth prior (per frame); a
+   component whose footprint does not meet the road (contact above the horizon, or resting on an upright surface
+   that is not the road) is no agent; side columns resting elsewhere, or standing far behind the footprint, are
+   dropped.
+3. **Lifting** (upright model): each column of a component is a vertical segment at the depth read near its
+   contact (at most the road's depth there); a line ``1/d = a + b u`` through the column depths places every
+   pixel (the visible 3D points); the depth statistic back-projects the pixel centroid to the *visible-surface
+   centre* (the measurement).
+4. **Tracking** (``agg/priors/kalman.py``): constant-velocity Kalman filters in world x, y, z, chi-square gating
    on the Mahalanobis distance plus an image-space gate, Hungarian assignment (plus a colour cue with frames); a
-   track coasts (invalid) through up to ``max_missed`` missed frames and keeps its id; tracks with fewer than
-   ``min_hits`` detections are dropped.
-4. **Class** (rigid / non-rigid) from the tracked objects' image aspect ratio, **yaw** from the RTS-smoothed world
-   velocity, and **amodal boxes**: the visible points give the extents, a class-dependent size prior completes
-   the unseen side (one size per rigid track), and the box is pushed away from the camera behind the visible
-   faces; centres follow the RTS-smoothed track.
+   track coasts (invalid) through up to ``max_missed`` missed frames and keeps its id; a track lost for longer
+   is re-joined when it reappears within ``relink_max_gap`` frames where its motion predicts; tracks with fewer than
+   ``max(min_hits, min_track_fraction T)`` detections, or smaller than an agent at their road contact, are dropped.
+5. **Class** (rigid / non-rigid) from the tracked objects' image aspect ratio, **yaw** from the RTS-smoothed world
+   velocity, and **amodal boxes** (``agg/priors/tracklet_boxes.py``): the visible points give the extents, a
+   class-dependent size prior completes the unseen side (one size per rigid track), and the box is pushed away
+   from the camera behind the visible faces; centres follow the RTS-smoothed track.
 
 Scale-free: noise levels and gates are fractions of depth (or of the clip's median agent depth), so scene units
 may be metres or the bundle's normalised units.
@@ -34,7 +41,9 @@ from scipy.stats import chi2
 
 from agg.io.bundle_priors import Tracklets
 from agg.priors.tracklet_detections import Candidate, frame_candidates
-from agg.priors.kalman import smooth_sequence, track_points
+from agg.priors.kalman import relink, smooth_sequence, track_points
+from agg.priors.tracklet_boxes import classify, track_boxes, track_yaws
+from agg.priors.tracklet_ground import ground_planes
 
 
 class TrackletInputError(ValueError):
@@ -49,15 +58,27 @@ class TrackConfig:
     min_area_px: int = 6  # components below max(min_area_px, min_area_fraction * H * W) pixels are dropped
     min_area_fraction: float = 2e-4  # 160x96: 3 px; 1280x720: 184 px
     connectivity: int = 8  # 4 or 8 (OpenCV connected components)
-    depth_percentile: float = 50.0  # depth statistic of a component (percentile of its valid depth)
+    depth_percentile: float = 50.0  # depth statistic of a component (percentile of its pixels' upright depths)
     min_depth_confidence: float = 0.5  # with depth_confidence: lower pixels count as "no depth"
-    min_depth_fraction: float = 0.05  # a component needs >= this fraction (and >= 3 px) of valid depth to be lifted
-    depth_outlier_ratio: float = 1.6  # pixels with depth outside [d / r, d * r] of the statistic are ignored
-    plane_fit: bool = True  # visible points from a robust plane fit of 1/depth (False: raw per-pixel depth)
+    min_depth_fraction: float = 0.05  # lifted when columns with a depth hold >= this fraction (and >= 3) of its px
+    depth_outlier_ratio: float = 1.6  # column depths outside [d / r, d * r] of their median are ignored
+    max_column_depth_ratio: float = 2.5  # columns deeper than this x the footprint's depth are dropped (a car's
+    #                                      far end is < 2x its near corner's depth from 5 m on)
+    plane_fit: bool = True  # visible points at the upright fit 1/d = a + b u of the column depths (False: raw depth)
+    # ground rule (agg/priors/tracklet_ground.py): an agent stands on the road plane of the depth prior
+    ground_rule: bool = True  # False: no road plane, no ground test (column depths from the prior only)
+    contact_band: float = 0.25  # a column's depth: its valid depth in the lowest this x (box height) of the column
+    contact_rows: float = 0.01  # the prior below a contact is read in this x H rows (>= 3)
+    contact_ratio: float = 1.25  # ... GROUNDED when it is within this ratio of the road's depth there, ...
+    occlusion_ratio: float = 1.1  # ... OCCLUDED when nearer than the component's own depth / this
+    max_floating_fraction: float = 0.5  # footprint: more FLOATING pixels (by column) than this x those decided:
+    #                                     not an agent
     split_depth_layers: bool = True  # split two-layered components (Otsu / widest gap of log depth + edge test)
     split_min_separation: float = 0.1  # ... when the layer means differ by >= this in log depth (10 %)
     split_min_contrast: float = 4.0  # ... and by >= this many pooled within-layer stds (Gaussian 2.7, uniform 3.5)
     split_edge_fraction: float = 0.7  # ... and the layers meet at a jump >= this * separation (above the noise)
+    split_neck_ratio: float = 0.3  # cut a component at a column with <= this x the pixels of the tallest column on
+    #                                 both sides (two agents joined by a thin strip of mask); 0 disables
     merge_parts: bool = True  # merge same-frame components at the same depth separated by a small gap
     merge_depth_ratio: float = 0.1  # |log d_a - log d_b| <= this
     merge_gap_fraction: float = 0.2  # gap <= this * the smaller extent (a pole, not the lane between two cars)
@@ -76,7 +97,13 @@ class TrackConfig:
     #                               by this x its size on each side + gate_box_min_margin; < 0 disables the gate
     gate_box_min_margin: float = 0.05  # fraction of the image width
     max_missed: int = 3  # consecutive missed frames before a track ends (2-frame occlusions keep the id)
-    min_hits: int = 3  # tracks with fewer detections are dropped
+    relink_max_gap: int = 8  # a track lost for longer than max_missed is re-joined when it reappears within this
+    #                          many frames where its motion predicts (agg/priors/kalman.py ``relink``); < 2: never
+    min_hits: int = 3  # tracks with fewer detections are dropped ...
+    min_track_fraction: float = 0.2  # ... or with fewer than this x T detections (mask flicker is short-lived)
+    min_ground_area: float = 0.1  # ... or whose median area in camera heights^2 at their road contact is below
+    #                               this (synthetic: people >= 0.33, cars >= 0.67; udacity: cars 1.6-3.1, a mask
+    #                               blob on a lane marking near the camera 0.04); needs the road plane
     # class and box
     nonrigid_min_aspect: float = 1.3  # median 3D height / width of the track's detections above this: non-rigid
     rigid_length_width_ratio: float = 2.4  # rigid footprint: l >= ratio * w and w >= l / ratio (car ~4.5 / 1.85)
@@ -103,14 +130,20 @@ class TrackConfig:
                      "depth_outlier_ratio", "rigid_length_width_ratio", "nonrigid_min_aspect"):
             if not (np.isfinite(getattr(self, name)) and getattr(self, name) > 0):
                 bad(f"{name} must be a finite value > 0, got {getattr(self, name)}")
-        if self.depth_outlier_ratio <= 1:
-            bad("depth_outlier_ratio must be > 1")
+        if self.depth_outlier_ratio <= 1 or self.max_column_depth_ratio <= 1:
+            bad("depth_outlier_ratio and max_column_depth_ratio must be > 1")
         if not 0 < self.gate_probability < 1:
             bad(f"gate_probability must be in (0, 1), got {self.gate_probability}")
         if self.max_missed < 0 or self.min_hits < 1 or self.yaw_refinements < 0:
             bad("max_missed and yaw_refinements must be >= 0 and min_hits >= 1")
+        if not 0 <= self.min_track_fraction <= 1 or self.min_ground_area < 0:
+            bad("min_track_fraction must be in [0, 1] and min_ground_area >= 0")
         if self.appearance_weight < 0 or not 1 <= self.appearance_bins <= 16 or not 0 <= self.appearance_memory < 1:
             bad("appearance_weight must be >= 0, appearance_bins in [1, 16], appearance_memory in [0, 1)")
+        if not (self.contact_ratio > 1 and self.occlusion_ratio >= 1 and 0 < self.contact_band <= 1
+                and 0 <= self.contact_rows < 1 and 0 <= self.max_floating_fraction <= 1):
+            bad("contact_ratio must be > 1, occlusion_ratio >= 1, contact_band in (0, 1], contact_rows in [0, 1), "
+                "max_floating_fraction in [0, 1]")
         if self.max_points < 8:
             bad("max_points must be >= 8")
 
@@ -129,6 +162,8 @@ class Detection:
     depth: float = float("nan")  # the depth statistic (camera z, scene units)
     depth_fraction: float = 0.0  # fraction of its pixels with valid depth
     centre_px: np.ndarray = field(default_factory=lambda: np.full(2, np.nan))  # [2] pixel centroid (u, v)
+    on_ground: bool | None = None  # ground rule: False = not standing on the road (not tracked), None = undecided
+    ground_area: float = float("nan")  # area in camera heights^2 at its road contact (NaN: no road plane)
 
 
 @dataclass
@@ -175,118 +210,6 @@ def _check_inputs(masks, depth, K, world_from_camera, frames, depth_confidence):
 
 
 # --------------------------------------------------------------------------------------------------------------
-# class, yaw and amodal boxes
-
-
-def _aspect(c: Candidate, K: np.ndarray) -> float:
-    """3D height / width of a detection from its pixel box: (bh / fy) / (bw / fx)."""
-    x0, y0, x1, y1 = c.bbox
-    return float(((y1 - y0) / K[1, 1]) / max((x1 - x0) / K[0, 0], 1e-9))
-
-
-def _inner(cands: dict, shape: tuple[int, int]) -> list[int]:
-    """Frames whose detection does not touch the image border (all frames when every one does)."""
-    h, w = shape
-    inner = [i for i, c in cands.items() if c.bbox[0] > 0 and c.bbox[1] > 0 and c.bbox[2] < w and c.bbox[3] < h]
-    return inner or list(cands)
-
-
-def _classify(cands: dict, K: np.ndarray, shape: tuple[int, int], cfg: TrackConfig) -> str:
-    """Non-rigid when the median aspect of the detections not cut by the image border is tall (a person)."""
-    ratios = [_aspect(cands[i], K) for i in _inner(cands, shape)]
-    return "non-rigid" if float(np.median(ratios)) > cfg.nonrigid_min_aspect else "rigid"
-
-
-def _heading_yaw(v: np.ndarray) -> float:
-    """Yaw of a box whose x axis points along the horizontal (world x, z) direction of v: atan2(-vz, vx)."""
-    return float(np.arctan2(-v[2], v[0]))
-
-
-def _track_yaws(state: np.ndarray, cov: np.ndarray, valid: np.ndarray, world_from_camera: np.ndarray,
-                cfg: TrackConfig) -> np.ndarray:
-    """[T] yaw per valid frame: smoothed velocity where significant, else the nearest significant frame's, else
-    the camera's heading (road-aligned assumption for an agent that never visibly moves). NaN where invalid."""
-    n = len(valid)
-    yaw = np.full(n, np.nan)
-    for i in np.nonzero(valid)[0]:
-        v = state[i, 3:]
-        speed = float(np.hypot(v[0], v[2]))
-        if speed <= 0 or not np.isfinite(speed):
-            continue
-        u = np.array([v[0], 0.0, v[2]]) / speed
-        sigma = float(np.sqrt(max(u @ cov[i, 3:, 3:] @ u, 0.0)))
-        if speed > cfg.yaw_min_speed_sigmas * sigma:
-            yaw[i] = _heading_yaw(v)
-    have = np.nonzero(np.isfinite(yaw))[0]
-    for i in np.nonzero(valid & ~np.isfinite(yaw))[0]:
-        if len(have):
-            yaw[i] = yaw[have[np.argmin(np.abs(have - i))]]
-        else:
-            yaw[i] = _heading_yaw(world_from_camera[i, :3, 2])
-    return yaw
-
-
-def _box_extents(points: np.ndarray, yaw: float, camera: np.ndarray, cfg: TrackConfig) -> np.ndarray:
-    """[3, 3] rows (mid, extent, camera coordinate) of visible world points [n, 3] along the box axes x, y, z.
-
-    Robust extents: the ``extent_percentiles`` range scaled to the full range of a uniform spread."""
-    axes = np.array([[np.cos(yaw), 0.0, -np.sin(yaw)], [0.0, 1.0, 0.0], [np.sin(yaw), 0.0, np.cos(yaw)]])  # [3, 3]
-    lo_p, hi_p = cfg.extent_percentiles
-    s = points @ axes.T  # [n, 3]
-    a, b = np.percentile(s, [lo_p, hi_p], axis=0)  # [3], [3]
-    return np.stack([0.5 * (a + b), (b - a) / ((hi_p - lo_p) / 100.0), axes @ camera], 1)
-
-
-def _rigid_size(ext: np.ndarray, cfg: TrackConfig) -> np.ndarray:
-    """(l, w, h) of one frame from visible extents [3] (x, y, z): l >= r w and w >= l / r (the class prior)."""
-    r = cfg.rigid_length_width_ratio
-    return np.array([max(ext[0], r * ext[2]), max(ext[2], ext[0] / r), ext[1]])
-
-
-def _place(mid: float, ext: float, size: float, cam: float) -> float:
-    """Centre along one axis of a box of ``size`` whose visible part spans ``ext`` around ``mid``: it grows away
-    from the camera (the visible points are its near face) unless the camera lies within the visible range."""
-    lo, hi = mid - 0.5 * ext, mid + 0.5 * ext
-    if cam < lo:
-        return lo + 0.5 * size
-    if cam > hi:
-        return hi - 0.5 * size
-    return mid
-
-
-def _track_boxes(cands: dict, yaw: np.ndarray, world_from_camera: np.ndarray, rigid: bool, shape: tuple[int, int],
-                 cfg: TrackConfig) -> dict:
-    """Amodal boxes (cx, cy, cz, l, w, h, yaw) of one track, frame -> [7].
-
-    Sizes come from the detections not cut by the image border (all when every one is).
-    Rigid: one size for the track, the median of the per-frame sizes (visible extents along the box axes,
-    completed by the l / w ratio prior), and per frame the box placed behind its visible faces (``_place``).
-    Non-rigid: a square footprint, l = w = the track's median visible lateral extent (measured across the
-    viewing ray from pixel widths, reliable even with noisy depth), h per frame; the centre is the visible-surface
-    centre pushed w / 2 away from the camera along the horizontal viewing direction."""
-    ext = {i: _box_extents(c.points_world, yaw[i], world_from_camera[i, :3, 3], cfg) for i, c in cands.items()}
-    inner = _inner(cands, shape)  # sizes from detections not cut by the image border
-    out = {}
-    if rigid:
-        size = np.median([_rigid_size(ext[i][:, 1], cfg) for i in inner], axis=0)  # [3] l, w, h
-        for i, e in ext.items():
-            ax = np.array([[np.cos(yaw[i]), 0.0, -np.sin(yaw[i])], [0.0, 1.0, 0.0],
-                           [np.sin(yaw[i]), 0.0, np.cos(yaw[i])]])
-            centre = (_place(e[0, 0], e[0, 1], size[0], e[0, 2]) * ax[0] + e[1, 0] * ax[1]
-                      + _place(e[2, 0], e[2, 1], size[1], e[2, 2]) * ax[2])
-            out[i] = np.array([*centre, *size, yaw[i]])
-        return out
-    foot = float(np.median([cands[i].size[1] for i in inner]))
-    for i, c in cands.items():
-        view = c.centre_world - world_from_camera[i, :3, 3]
-        view = np.array([view[0], 0.0, view[2]]) / max(np.hypot(view[0], view[2]), 1e-12)
-        centre = c.centre_world + 0.5 * foot * view
-        centre[1] = ext[i][1, 0]
-        out[i] = np.array([*centre, foot, foot, ext[i][1, 1], yaw[i]])
-    return out
-
-
-# --------------------------------------------------------------------------------------------------------------
 # the entry point
 
 
@@ -315,11 +238,12 @@ def track_agents(masks: np.ndarray, depth: np.ndarray, K: np.ndarray, world_from
     t, h, w = m.shape
     min_area = max(int(config.min_area_px), int(np.ceil(config.min_area_fraction * h * w)))
     K_inv = np.linalg.inv(K)
+    planes = ground_planes(d, conf, m > 0, config.min_depth_confidence) if config.ground_rule else [None] * t
     cands: list[list[Candidate]] = []
     for i in range(t):
         image = None if frames is None else np.asarray(frames[i])
         cands.append(frame_candidates(m[i] > 0, d[i], None if conf is None else conf[i], image, K_inv, P[i],
-                                      min_area, config))
+                                      min_area, config, planes[i]))
         if progress is not None:
             progress(i)
     detections = [[_as_detection(c, i) for c in cs] for i, cs in enumerate(cands)]
@@ -340,7 +264,10 @@ def track_agents(masks: np.ndarray, depth: np.ndarray, K: np.ndarray, world_from
                              feat_steps=feats, appearance_weight=config.appearance_weight,
                              appearance_memory=config.appearance_memory,
                              extra_gate=_image_gate(lifted, K, P, w, h, config))
-    histories = [hh for hh in histories if hh.hits >= config.min_hits]
+    histories = relink(histories, max_gap=config.relink_max_gap, gate=float(chi2.ppf(config.gate_probability, 3)),
+                       accel_var=accel_var)
+    need = max(config.min_hits, int(np.ceil(config.min_track_fraction * t)))
+    histories = [hh for hh in histories if hh.hits >= need and _big_enough(hh, lifted, config)]
     n = len(histories)
     if n == 0:
         return _empty_result(t, h, w, detections)
@@ -356,20 +283,20 @@ def track_agents(masks: np.ndarray, depth: np.ndarray, K: np.ndarray, world_from
         steps = np.nonzero(hist.assoc >= 0)[0]
         mine = {int(i): lifted[i][hist.assoc[i]] for i in steps}
         valid[k, steps] = True
-        cls = _classify(mine, K, (h, w), config)
+        cls = classify(mine, K, (h, w), config)
         classes.append(cls)
         # yaw from the surface-centre track, boxes, then (yaw_refinements times) yaw again from the smoothed
         # track of the amodal box centres, which do not drift when the visible part of an agent changes
-        yaw = _track_yaws(hist.state, hist.cov, valid[k], P, config)
+        yaw = track_yaws(hist.state, hist.cov, valid[k], P, config)
         for rnd in range(config.yaw_refinements + 1):
-            fitted = _track_boxes(mine, yaw, P, cls == "rigid", (h, w), config)
+            fitted = track_boxes(mine, yaw, P, cls == "rigid", (h, w), config)
             z = np.full((t, 3), np.nan)
             r = np.repeat(np.eye(3)[None], t, 0)
             for i, c in mine.items():
                 z[i], r[i] = fitted[i][:3], c.cov_world
             state, cov = smooth_sequence(z, r, accel_var=accel_var, init_vel_var=init_vel_var)
             if rnd < config.yaw_refinements:
-                yaw = _track_yaws(state, cov, valid[k], P, config)
+                yaw = track_yaws(state, cov, valid[k], P, config)
         for i, c in mine.items():
             boxes[k, i] = fitted[i]
             if config.smooth_centres:  # the RTS-smoothed amodal centre
@@ -382,6 +309,14 @@ def track_agents(masks: np.ndarray, depth: np.ndarray, K: np.ndarray, world_from
                           confidence=np.clip(confidence, 0, 1),
                           labels=["pedestrian" if c == "non-rigid" else "vehicle" for c in classes])
     return TrackResult(tracklets, boxes2d, centres2d, instance, detections)
+
+
+def _big_enough(hist, lifted: list[list[Candidate]], cfg: TrackConfig) -> bool:
+    """The median area of a track's detections in camera heights^2 (where the road plane gives it) is at least
+    ``min_ground_area``."""
+    area = [lifted[i][j].ground_area for i, j in enumerate(hist.assoc) if j >= 0]
+    area = [a for a in area if np.isfinite(a)]
+    return not area or float(np.median(area)) >= cfg.min_ground_area
 
 
 def _image_gate(lifted: list[list[Candidate]], K: np.ndarray, world_from_camera: np.ndarray, width: int,
@@ -415,7 +350,8 @@ def _image_gate(lifted: list[list[Candidate]], K: np.ndarray, world_from_camera:
 def _as_detection(c: Candidate, frame: int) -> Detection:
     return Detection(frame=frame, bbox=np.asarray(c.bbox, float), centre_world=c.centre_world.copy(),
                      size=c.size.copy(), area=int(c.area), label=int(min(c.labels)), labels=tuple(c.labels),
-                     depth=float(c.depth), depth_fraction=float(c.depth_fraction), centre_px=c.centre_px.copy())
+                     depth=float(c.depth), depth_fraction=float(c.depth_fraction), centre_px=c.centre_px.copy(),
+                     on_ground=c.on_ground, ground_area=float(c.ground_area))
 
 
 __all__ = ["TrackConfig", "Detection", "TrackResult", "TrackletInputError", "track_agents"]
