@@ -6,7 +6,7 @@ them again. Prints one JSON line per seed and a final line with the means: ATE (
 orientations), mask IoU on the moving agents and on all agents, tracklet recall and precision (world centres
 within 2 m, moving GT agents), and seconds per stage.
 
-    python bench/priors_suite.py [--seeds 0,1,2] [--frames 24] [--width 320] [--height 192]
+    python bench/priors_suite.py [--seeds 0,1,2] [--frames 24] [--width 320] [--height 192] [--given poses,depth]
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 
-def run_seed(seed: int, frames: int, width: int, height: int, root: Path) -> dict:
+def run_seed(seed: int, frames: int, width: int, height: int, root: Path, given: tuple[str, ...] = ()) -> dict:
     from agg.io.bundle import SceneBundle
     from agg.priors.pipeline import PriorsConfig, run_priors
     from agg.synth.corrupt import NoiseConfig
@@ -32,8 +32,13 @@ def run_seed(seed: int, frames: int, width: int, height: int, root: Path) -> dic
     path = root / f"seed{seed}"
     write_bundle(path, gt, priors, NoiseConfig(), overwrite=True)
     bundle = SceneBundle.load(path)
+    keep = {"poses": ("poses",), "depth": ("depth_dense",), "masks": ("dynamic_masks",)}
+    kept = {part for g in given for part in keep[g]}
     for part in ("poses", "depth_dense", "depth_sparse", "dynamic_masks", "tracklets", "semantics"):
-        bundle.remove(part)
+        if part not in kept:
+            bundle.remove(part)
+    if "masks" in given:  # the exact masks of the MOVING agents (what a flow-based prior is asked to find)
+        bundle.write_dynamic_masks(np.isin(gt.instance, gt.agent_ids[gt.agent_moving]), source="gt")
     summary = run_priors(bundle, PriorsConfig())
     s = summary.scores
     return {
@@ -57,11 +62,15 @@ def main() -> int:
     ap.add_argument("--width", type=int, default=320)
     ap.add_argument("--height", type=int, default=192)
     ap.add_argument("--keep", type=Path, help="write the bundles here (kept) instead of a temporary folder")
+    ap.add_argument("--given", default="", help="exact priors to keep instead of estimating them (isolates a "
+                    "stage): comma-separated subset of poses, depth, masks (masks: the moving agents' GT masks)")
     args = ap.parse_args()
     rows = []
     with tempfile.TemporaryDirectory(prefix="agg_priors_suite_") as tmp:
         for seed in (int(s) for s in args.seeds.split(",")):
-            row = run_seed(seed, args.frames, args.width, args.height, args.keep or Path(tmp))
+            given = tuple(g for g in args.given.split(",") if g)
+            row = run_seed(seed, args.frames, args.width, args.height, args.keep or Path(tmp), given)
+            row["given"] = list(given)
             rows.append(row)
             print(json.dumps(row), flush=True)
     keys = ("registered_fraction", "ate_percent_of_path", "mask_iou_moving", "mask_iou_all", "tracklet_recall",

@@ -223,7 +223,7 @@ def smooth_sequence(z: np.ndarray, R: np.ndarray, *, accel_var: float, init_vel_
 def relink(histories: list[TrackHistory], *, max_gap: int, gate: float, accel_var: float) -> list[TrackHistory]:
     """Join tracks broken by a gap longer than the tracker's ``max_missed`` (an agent lost for a few frames).
 
-    A track B that starts ``g`` steps (1 < g <= ``max_gap``) after a track A ended, with no step in common, is
+    A track B that starts ``g`` steps (1 <= g <= ``max_gap``) after a track A ended, with no step in common, is
     the same agent when A's smoothed last state, propagated over the gap with the constant-velocity model
     (covariance grown by the process noise), meets B's smoothed first position within the chi-square ``gate`` on
     the squared Mahalanobis distance (covariance: propagated A plus B's). Pairs are joined greedily, closest
@@ -240,7 +240,7 @@ def relink(histories: list[TrackHistory], *, max_gap: int, gate: float, accel_va
     for a, ha in enumerate(histories):
         for b, hb in enumerate(histories):
             gap = spans[b][0] - spans[a][1]
-            if a == b or not 1 < gap <= max_gap:
+            if a == b or not 1 <= gap <= max_gap:
                 continue
             x, p = ha.state[spans[a][1]], ha.cov[spans[a][1]]  # [6], [6, 6]
             f, q = transition(float(gap)), process_noise(float(gap), accel_var)
