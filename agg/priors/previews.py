@@ -30,6 +30,21 @@ def _plt():
     return plt
 
 
+def _save(fig, path: Path) -> Path:
+    plt = _plt()
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
+def _top_view(ax) -> None:
+    """Axes of a plot seen from above: world x (right) against z (forward), equal scale."""
+    ax.set_xlabel("x (right)")
+    ax.set_ylabel("z (forward)")
+    ax.set_aspect("equal", adjustable="datalim")
+
+
 def preview_frames(num_frames: int, count: int = 6) -> list[int]:
     """Up to ``count`` evenly spaced frame indices, first and last included."""
     return sorted(set(np.linspace(0, num_frames - 1, min(count, num_frames)).round().astype(int).tolist()))
@@ -117,10 +132,7 @@ def _masks_png(bundle: SceneBundle, idx: list[int], path: Path) -> Path:
         ax.set_title(f"frame {i}  (mask {cover:.1f} % of pixels)", fontsize=9)
         ax.axis("off")
     fig.suptitle("dynamic masks (red) and tracklets", fontsize=11)
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path
+    return _save(fig, path)
 
 
 def _trajectory_png(bundle: SceneBundle, path: Path) -> Path:
@@ -148,15 +160,10 @@ def _trajectory_png(bundle: SceneBundle, path: Path) -> Path:
         title += f"\nATE {m.ate_rmse:.3g}{unit}, {m.ate_percent_of_path:.2f} % of the path"
     for i in (0, len(c) - 1):
         ax.annotate(f"frame {i}", (c[i, 0], c[i, 2]), fontsize=8)
-    ax.set_xlabel("x (right)")
-    ax.set_ylabel("z (forward)")
-    ax.set_aspect("equal", adjustable="datalim")
+    _top_view(ax)
     ax.legend(fontsize=8)
     ax.set_title(title, fontsize=10)
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path
+    return _save(fig, path)
 
 
 def _tracklets_png(bundle: SceneBundle, path: Path) -> Path:
@@ -170,9 +177,7 @@ def _tracklets_png(bundle: SceneBundle, path: Path) -> Path:
         b = np.asarray(tr.boxes[k])[v]
         ax.plot(b[:, 0], b[:, 2], ".-", color=_track_colour(k), ms=4, label=f"track {tr.ids[k]} ({tr.classes[k]})")
         ax2.plot(np.flatnonzero(v), np.full(v.sum(), k), "s", color=_track_colour(k), ms=4)
-    ax.set_xlabel("x (right)")
-    ax.set_ylabel("z (forward)")
-    ax.set_aspect("equal", adjustable="datalim")
+    _top_view(ax)
     ax.set_title("track centres from above", fontsize=10)
     if len(tr.ids):
         ax.legend(fontsize=7)
@@ -181,10 +186,7 @@ def _tracklets_png(bundle: SceneBundle, path: Path) -> Path:
     ax2.set_xlabel("frame")
     ax2.set_ylabel("track id")
     ax2.set_title("frames where each track is valid", fontsize=10)
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path
+    return _save(fig, path)
 
 
 def _depth_png(bundle: SceneBundle, idx: list[int], path: Path) -> Path:
@@ -197,7 +199,4 @@ def _depth_png(bundle: SceneBundle, idx: list[int], path: Path) -> Path:
         ax.set_title(f"frame {i}: inverse depth ({100.0 * float((d > 0).mean()):.0f} % covered)", fontsize=9)
         ax.axis("off")
     fig.suptitle("dense depth prior", fontsize=11)
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path
+    return _save(fig, path)
