@@ -137,7 +137,6 @@ class _Bars:
 
 
 def run(args: argparse.Namespace) -> int:
-    from agg.io.errors import ImporterError, IngestError
     from agg.priors.pipeline import PriorsConfig, run_priors
     from agg.priors.poses import write_kitti_poses
     from agg.priors.previews import write_previews
@@ -163,7 +162,7 @@ def run(args: argparse.Namespace) -> int:
             summary = run_priors(bundle, config, progress=bars)
         finally:
             bars.close()
-    except (ValueError, FileNotFoundError, FileExistsError, ImporterError, IngestError) as exc:
+    except (ValueError, OSError) as exc:  # every agg input error is a ValueError; missing/existing paths OSError
         print(f"agg priors: error: {exc}", file=sys.stderr)
         return 2
     if args.poses_out:
