@@ -1,0 +1,108 @@
+"""Scene-graph building blocks: the camera node and Gaussian parameter sets with optimiser-state surgery."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from agg.nodes.camera import CameraNode
+from agg.nodes.gaussians import GaussianParams, append_rows, keep_rows, knn_scales
+from agg.render import rasterize
+
+
+def _poses(t: int = 5) -> torch.Tensor:
+    p = torch.eye(4).repeat(t, 1, 1)
+    p[:, 2, 3] = torch.arange(t, dtype=torch.float32)  # driving forward along z
+    return p
+
+
+def test_camera_starts_at_the_prior_and_keeps_frame_zero_fixed():
+    prior = _poses()
+    cam = CameraNode(prior)
+    torch.testing.assert_close(cam.world_from_camera(), prior)
+    torch.testing.assert_close(cam.camera_from_world() @ cam.world_from_camera(), torch.eye(4).repeat(5, 1, 1))
+    with torch.no_grad():
+        cam.omega += 0.1
+        cam.tau += 0.2
+    p = cam.world_from_camera()
+    torch.testing.assert_close(p[0], prior[0])  # the gauge: world = first camera
+    assert not torch.allclose(p[1:], prior[1:])
+    r = p[1:, :3, :3]
+    torch.testing.assert_close(r @ r.transpose(1, 2), torch.eye(3).repeat(4, 1, 1), atol=1e-5, rtol=0)
+    # the correction is applied in the camera frame: tau moves the centre along the camera's own axes
+    torch.testing.assert_close(p[2, :3, 3] - prior[2, :3, 3], r[1] @ torch.full((3,), 0.2), atol=1e-6, rtol=0)
+
+
+def test_camera_gradients_reach_the_correction_through_the_renderer():
+    cam = CameraNode(_poses(3))
+    g = GaussianParams.from_points(np.array([[0.0, 0.0, 6.0], [0.5, 0.2, 7.0]]), np.array([[1, 0, 0], [0, 1, 0.]]),
+                                   sh_degree=0, opacity=0.8, scales=np.array([0.3, 0.3]))
+    a = g.activated()
+    K = torch.tensor([[40.0, 0, 15.5], [0, 40.0, 11.5], [0, 0, 1]])
+    out = rasterize(a["means"], a["quats"], a["scales"], a["opacities"], sh=a["sh"], K=K, width=32, height=24,
+                    viewmat=cam.camera_from_world(torch.tensor([1]))[0])
+    out.color.sum().backward()
+    assert torch.isfinite(cam.omega.grad).all() and cam.omega.grad[1].abs().sum() > 0
+    assert cam.tau.grad[1].abs().sum() > 0
+    assert cam.omega.grad[[0, 2]].abs().sum() == 0 and cam.tau.grad[[0, 2]].abs().sum() == 0
+    assert g.means.grad.abs().sum() > 0 and g.sh.grad.abs().sum() > 0
+
+
+def test_camera_rejects_bad_priors():
+    with pytest.raises(ValueError, match=r"\[T, 4, 4\]"):
+        CameraNode(torch.eye(3)[None])
+    bad = _poses()
+    bad[2, 0, 3] = float("nan")
+    with pytest.raises(ValueError, match="non-finite"):
+        CameraNode(bad)
+
+
+def test_knn_scales_clamp_duplicates_and_isolated_points():
+    xyz = np.array([[0, 0, 0], [0, 0, 0], [0, 0, 0], [1, 0, 0], [100, 0, 0]], float)
+    s = knn_scales(xyz, k=2, min_scale=1e-3, max_scale=5.0)
+    assert np.all(np.isfinite(np.log(s)))  # duplicates: no log(0) = -inf
+    assert s[0] == pytest.approx(1e-3) and s[4] == pytest.approx(5.0)
+    g = GaussianParams.from_points(xyz, np.full((5, 3), 0.5), sh_degree=2, max_scale=5.0)
+    a = g.activated()
+    assert a["sh"].shape == (5, 9, 3) and torch.isfinite(a["scales"]).all()
+    torch.testing.assert_close(a["opacities"], torch.full((5,), 0.1))
+
+
+def test_pruning_and_appending_keep_adam_state_aligned():
+    xyz = np.random.default_rng(0).normal(size=(6, 3))
+    keep = torch.tensor([True, False, True, True, False, True])
+    target = torch.randn(6, 3, generator=torch.Generator().manual_seed(0))
+    lrs = dict(means=0.01, log_scales=0.01, quats=0.01, opacity_logits=0.05, sh=0.01)
+
+    def step(g, opt, tgt):
+        opt.zero_grad()
+        ((g.means - tgt) ** 2).sum().add(g.sh.square().sum()).backward()
+        opt.step()
+
+    live = GaussianParams.from_points(xyz, np.full((6, 3), 0.3), sh_degree=1)
+    opt_live = torch.optim.Adam(live.param_groups("background", lrs))
+    ref = GaussianParams.from_points(xyz[keep.numpy()], np.full((4, 3), 0.3), sh_degree=1,
+                                     scales=knn_scales(xyz)[keep.numpy()])  # only the rows that survive
+    opt_ref = torch.optim.Adam(ref.param_groups("background", lrs))
+    for _ in range(3):
+        step(live, opt_live, target)
+        step(ref, opt_ref, target[keep])
+    keep_rows(live, keep, opt_live)
+    assert len(live) == 4 and all(p.shape[0] == 4 for g in opt_live.param_groups for p in g["params"])
+    for _ in range(2):  # Adam is per element: the kept rows go on exactly as if the others had never existed
+        step(live, opt_live, target[keep])
+        step(ref, opt_ref, target[keep])
+    for name in ("means", "sh", "log_scales"):
+        torch.testing.assert_close(getattr(live, name), getattr(ref, name))
+    extra = GaussianParams.from_points(np.zeros((2, 3)) + 5, np.full((2, 3), 0.8), sh_degree=1,
+                                       scales=np.array([0.1, 0.1]))
+    append_rows(live, extra, opt_live)
+    assert len(live) == 6
+    st = opt_live.state[live.means]
+    assert st["exp_avg"].shape == (6, 3) and st["exp_avg"][4:].abs().sum() == 0
+    step(live, opt_live, torch.randn(6, 3))  # the optimiser runs on the resized parameters
+    assert torch.isfinite(live.means).all()
+    with pytest.raises(ValueError, match="SH shapes differ"):
+        append_rows(live, GaussianParams.from_points(np.zeros((1, 3)), np.zeros((1, 3)), sh_degree=0,
+                                                     scales=np.array([0.1])))
