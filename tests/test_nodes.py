@@ -106,3 +106,74 @@ def test_pruning_and_appending_keep_adam_state_aligned():
     with pytest.raises(ValueError, match="SH shapes differ"):
         append_rows(live, GaussianParams.from_points(np.zeros((1, 3)), np.zeros((1, 3)), sh_degree=0,
                                                      scales=np.array([0.1])))
+
+
+def _quat_to_matrix(q: torch.Tensor) -> torch.Tensor:
+    w, x, y, z = (q / q.norm(dim=-1, keepdim=True)).unbind(-1)
+    return torch.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+                        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+                        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1).reshape(*q.shape[:-1], 3, 3)
+
+
+def _rigid(t: int = 4):
+    from agg.nodes.rigid import RigidAgents
+
+    rng = np.random.default_rng(1)
+    g = GaussianParams.from_points(rng.normal(size=(6, 3)) * 0.5, np.full((6, 3), 0.5), sh_degree=0,
+                                   scales=np.full(6, 0.2))
+    with torch.no_grad():
+        g.quats.copy_(torch.as_tensor(rng.normal(size=(6, 4)), dtype=torch.float32))
+        g.log_scales.copy_(torch.as_tensor(rng.normal(size=(6, 3)) * 0.3 - 1.5, dtype=torch.float32))
+    wfb = torch.eye(4).repeat(t, 2, 1, 1)  # [T, K, 4, 4]
+    for i in range(t):
+        a = 0.3 * i
+        wfb[i, 0, :3, :3] = torch.tensor([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
+        wfb[i, 0, :3, 3] = torch.tensor([1.0 * i, 0.0, 10.0])
+        wfb[i, 1, :3, 3] = torch.tensor([-3.0, 0.0, 8.0 + i])
+    valid = torch.ones(t, 2, dtype=torch.bool)
+    valid[2, 1] = False
+    return RigidAgents(g, torch.tensor([0, 0, 0, 1, 1, 1]), wfb, valid), wfb
+
+
+def test_rigid_compose_moves_means_and_covariances_with_the_box():
+    node, wfb = _rigid()
+    out = node.compose(1)
+    g = node.gaussians.activated()
+    pose = wfb[1][node.instance]  # [N, 4, 4]
+    want = (pose[:, :3, :3] @ g["means"][..., None])[..., 0] + pose[:, :3, 3]
+    torch.testing.assert_close(out["means"], want, atol=1e-5, rtol=0)
+    # covariance R S S R^T of the world Gaussian = pose rotation applied to the canonical covariance
+    cov = lambda q, s: _quat_to_matrix(q) @ torch.diag_embed(s ** 2) @ _quat_to_matrix(q).transpose(-1, -2)  # noqa: E731
+    r = pose[:, :3, :3]
+    torch.testing.assert_close(cov(out["quats"], out["scales"]), r @ cov(g["quats"], g["scales"]) @ r.transpose(1, 2),
+                               atol=1e-5, rtol=0)
+
+
+def test_rigid_validity_zeroes_absent_instances_and_their_gradients():
+    node, _ = _rigid()
+    out = node.compose(2)
+    assert (out["opacities"][3:] == 0).all() and (out["opacities"][:3] > 0).all()
+    K = torch.tensor([[60.0, 0, 31.5], [0, 60.0, 23.5], [0, 0, 1]])
+    img = rasterize(out["means"], out["quats"], out["scales"], out["opacities"], sh=out["sh"], K=K, width=64,
+                    height=48, viewmat=torch.eye(4))
+    img.color.sum().backward()
+    assert node.tau.grad[2, 0].abs().sum() > 0 and node.omega.grad[2, 0].abs().sum() > 0
+    assert node.tau.grad[2, 1].abs().sum() == 0 and node.gaussians.means.grad[3:].abs().sum() == 0
+    assert node.tau.grad[[0, 1, 3]].abs().sum() == 0  # only the rendered frame's pose learns
+
+
+def test_rigid_rejects_bad_inputs():
+    from agg.nodes.rigid import RigidAgents
+
+    g = GaussianParams.from_points(np.zeros((2, 3)), np.zeros((2, 3)), sh_degree=0, scales=np.ones(2))
+    with pytest.raises(ValueError, match=r"\[T, K, 4, 4\]"):
+        RigidAgents(g, torch.tensor([0, 0]), torch.eye(4).repeat(3, 1, 1), torch.ones(3, 1, dtype=torch.bool))
+    with pytest.raises(ValueError, match="instance indices"):
+        RigidAgents(g, torch.tensor([0, 2]), torch.eye(4).repeat(3, 2, 1, 1), torch.ones(3, 2, dtype=torch.bool))
+    bad = torch.eye(4).repeat(3, 1, 1, 1)
+    bad[1, 0, 0, 3] = float("nan")
+    with pytest.raises(ValueError, match="finite where valid"):
+        RigidAgents(g, torch.tensor([0, 0]), bad, torch.ones(3, 1, dtype=torch.bool))
+    valid = torch.ones(3, 1, dtype=torch.bool)
+    valid[1, 0] = False  # a NaN pose where the instance is absent is fine (the bundle writes NaN there)
+    assert RigidAgents(g, torch.tensor([0, 0]), bad, valid).compose(1)["opacities"].abs().sum() == 0
