@@ -1,5 +1,6 @@
 """Scene-graph nodes (paper Sec. 3): the camera node (``camera.py``), Gaussian parameter sets with optimiser-state
-surgery (``gaussians.py``) and rigid agents with per-frame poses and validity (``rigid.py``).
+surgery (``gaussians.py``), rigid agents with per-frame poses and validity (``rigid.py``), and their initialisation
+from a scene bundle (``init.py``). ``agg/graph.py`` composes them.
 
-The background, non-rigid and sky nodes and the graph's ``compose(t)`` are still to come (issue 4).
+The non-rigid and sky nodes are still to come (issue 4).
 """
