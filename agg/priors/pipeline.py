@@ -311,14 +311,24 @@ def score_against_gt(bundle: SceneBundle) -> dict:
     return out
 
 
+def _synth_extra(bundle: SceneBundle, key: str) -> Path | None:
+    """Path of a synthetic ground-truth extra (``agg.synth.suite.GT_EXTRAS``), or None when it is absent."""
+    from agg.synth.suite import GT_EXTRAS
+
+    path = bundle.path / "gt" / GT_EXTRAS[key]
+    return path if path.is_file() else None
+
+
+def _synth_moving_ids(bundle: SceneBundle) -> list[int] | None:
+    """Ids of the GT agents that move (synthetic bundles record it), or None."""
+    index = _synth_extra(bundle, "index")
+    return None if index is None else [a["id"] for a in json.loads(index.read_text())["agents"] if a.get("moving")]
+
+
 def _moving_gt_masks(bundle: SceneBundle) -> np.ndarray | None:
     """GT masks of the moving agents only (synthetic bundles record which agents move)."""
-    index_path = bundle.path / "gt" / "synth" / "index.json"
-    inst_path = bundle.path / "gt" / "synth" / "instance.npy"
-    if not (index_path.is_file() and inst_path.is_file()):
-        return None
-    moving = [a["id"] for a in json.loads(index_path.read_text())["agents"] if a.get("moving")]
-    return np.isin(np.load(inst_path), moving)
+    moving, inst = _synth_moving_ids(bundle), _synth_extra(bundle, "instance")
+    return None if moving is None or inst is None else np.isin(np.load(inst), moving)
 
 
 def _score_tracklets(bundle: SceneBundle, gt: SceneBundle, max_dist_m: float = 2.0,
@@ -338,11 +348,10 @@ def _score_tracklets(bundle: SceneBundle, gt: SceneBundle, max_dist_m: float = 2
     gt_t = gt.tracklets
     valid = np.asarray(gt_t.valid)  # [G, T]
     keep = np.ones(len(gt_t.classes), bool)
-    synth = bundle.path / "gt" / "synth"
-    if (synth / "index.json").is_file() and (synth / "pixel_count.npy").is_file():
-        moving = {a["id"] for a in json.loads((synth / "index.json").read_text())["agents"] if a.get("moving")}
-        valid = valid & (np.load(synth / "pixel_count.npy") >= min_pixel_fraction * bundle.width * bundle.height)
-        keep = np.isin(gt_t.ids, list(moving)) & valid.any(1)
+    moving, counts = _synth_moving_ids(bundle), _synth_extra(bundle, "pixel_count")
+    if moving is not None and counts is not None:
+        valid = valid & (np.load(counts) >= min_pixel_fraction * bundle.width * bundle.height)
+        keep = np.isin(gt_t.ids, moving) & valid.any(1)
     gtc = np.where(valid[..., None], gt_t.boxes[..., :3], np.nan)[keep]
     max_dist = max_dist_m / gt.scale if gt.metric else max_dist_m
     s = tracklet_scores(pred, gtc, max_dist=max_dist)
