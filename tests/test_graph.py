@@ -40,7 +40,7 @@ def test_initial_graph_renders_the_clip_and_its_agents(synth):
         assert psnr > 18.0, psnr
         assert out.alpha[torch.as_tensor(gt.depth_valid[frame])].mean() > 0.95
         g = graph.compose(frame)
-        assert g["means"].shape[0] == g["node"].shape[0] == len(graph.background) + len(graph.rigid.gaussians)
+        assert g["means"].shape[0] == g["node"].shape[0] == graph.num_gaussians()
     # the agents' Gaussians land on their pixels: render node ids as colours and compare with the GT instances
     from agg.render import rasterize
 
@@ -51,8 +51,10 @@ def test_initial_graph_renders_the_clip_and_its_agents(synth):
                         width=160, height=96, viewmat=graph.camera.camera_from_world(torch.tensor([5]))[0])
     node_map = out.color.argmax(-1).numpy()  # [H, W]
     checked = 0
-    for j, row in enumerate(graph.track_rows):
-        mask = gt.instance[5] == int(bundle.tracklets.ids[row])
+    ids = [int(i) for i in bundle.tracklets.ids]
+    for j, tid in enumerate(graph.slot_track_ids().tolist()):
+        row = ids.index(tid)
+        mask = gt.instance[5] == tid
         if not bundle.tracklets.valid[row, 5] or mask.sum() < 40:
             continue
         drawn = node_map == j + 1
@@ -70,7 +72,7 @@ def test_a_scene_without_agents_gets_no_agent_node(synth, tmp_path):
     static = SceneBundle.load(tmp_path / "static")
     static.remove("tracklets")
     graph = SceneGraph.from_bundle(static)
-    assert graph.rigid is None and set(graph.compose(0)["node"].tolist()) == {0}
+    assert graph.rigid is None and graph.nonrigid is None and set(graph.compose(0)["node"].tolist()) == {0}
 
 
 def test_initialisation_needs_poses_and_depth(synth, tmp_path):
@@ -84,3 +86,21 @@ def test_initialisation_needs_poses_and_depth(synth, tmp_path):
     b.remove("poses")
     with pytest.raises(ValueError, match="needs camera poses"):
         SceneGraph.from_bundle(b)
+
+
+def test_agent_overrides_move_and_hide_agents_and_state_round_trips(synth):
+    bundle, _ = synth
+    graph = SceneGraph.from_bundle(bundle, InitConfig(opacity=0.9))
+    tid = int(graph.slot_track_ids()[0])
+    base = graph.compose(3)
+    hidden = graph.compose(3, agent_valid={tid: False})
+    rows = base["node"] == 1
+    assert base["opacities"][rows].sum() > 0 and hidden["opacities"][rows].sum() == 0
+    moved_pose = graph.rigid.world_from_box(3)[0].detach().clone()
+    moved_pose[0, 3] += 2.0
+    moved = graph.compose(3, agent_poses={tid: moved_pose})
+    torch.testing.assert_close(moved["means"][rows], base["means"][rows] + torch.tensor([2.0, 0, 0]))
+    torch.testing.assert_close(moved["means"][~rows], base["means"][~rows])
+    again = SceneGraph.from_state(graph.state())
+    with torch.no_grad():
+        torch.testing.assert_close(again.render(3).color, graph.render(3).color)

@@ -81,6 +81,19 @@ class GaussianParams(nn.Module):
     def __len__(self) -> int:
         return int(self.means.shape[0])
 
+    def state(self) -> dict[str, Tensor]:
+        """Detached parameters by name (``from_state`` rebuilds the set, whatever its size)."""
+        return {n: getattr(self, n).detach().clone() for n in PARAM_NAMES}
+
+    @classmethod
+    def from_state(cls, state: dict[str, Tensor]) -> "GaussianParams":
+        return cls(*(torch.as_tensor(state[n]) for n in PARAM_NAMES))
+
+    @classmethod
+    def empty(cls, sh_degree: int = 1) -> "GaussianParams":
+        return cls(torch.zeros(0, 3), torch.zeros(0, 3), torch.zeros(0, 4), torch.zeros(0),
+                   torch.zeros(0, (sh_degree + 1) ** 2, 3))
+
     @property
     def sh_degree(self) -> int:
         return int(round(math.sqrt(self.sh.shape[1]))) - 1
@@ -96,8 +109,9 @@ class GaussianParams(nn.Module):
         return [{"name": f"{prefix}#{n}", "params": [getattr(self, n)], "lr": float(lrs[n])} for n in PARAM_NAMES]
 
 
-def _swap(optimizer: torch.optim.Optimizer | None, old: nn.Parameter, new: nn.Parameter, rows) -> None:
-    """Point the optimiser at ``new`` and carry over the state rows selected by ``rows(state_tensor)``."""
+def swap_param(optimizer: torch.optim.Optimizer | None, old: nn.Parameter, new: nn.Parameter, rows) -> None:
+    """Point the optimiser at ``new`` and carry over its state through ``rows(state_tensor)`` (any tensor state
+    whose first dimension matches ``old``'s, e.g. Adam's moments; scalars such as ``step`` are kept)."""
     if optimizer is None:
         return
     for group in optimizer.param_groups:
@@ -118,7 +132,7 @@ def keep_rows(params: GaussianParams, keep: Tensor, optimizer: torch.optim.Optim
     for name in PARAM_NAMES:
         old = getattr(params, name)
         new = nn.Parameter(old.detach()[keep].clone())
-        _swap(optimizer, old, new, lambda v: v[keep].clone())
+        swap_param(optimizer, old, new, lambda v: v[keep].clone())
         setattr(params, name, new)
 
 
@@ -130,5 +144,5 @@ def append_rows(params: GaussianParams, other: GaussianParams,
     for name in PARAM_NAMES:
         old, extra = getattr(params, name), getattr(other, name).detach()
         new = nn.Parameter(torch.cat([old.detach(), extra.to(old)], 0))
-        _swap(optimizer, old, new, lambda v, e=extra: torch.cat([v, torch.zeros_like(e).to(v)], 0))
+        swap_param(optimizer, old, new, lambda v, e=extra: torch.cat([v, torch.zeros_like(e).to(v)], 0))
         setattr(params, name, new)

@@ -86,8 +86,8 @@ def _voxel_merge(xyz: np.ndarray, extra: np.ndarray, voxel: float) -> tuple[np.n
 
 
 def init_from_bundle(bundle: SceneBundle, config: InitConfig = InitConfig()) -> dict:
-    """Initial Gaussians: {"background": GaussianParams, "rigid": (GaussianParams, instance [N], track rows [K])
-    or None}. Needs poses and some depth."""
+    """Initial Gaussians: {"background": GaussianParams, "rigid" / "non-rigid": (GaussianParams, instance [N],
+    track rows [K]) or None}. Needs poses and some depth."""
     cfg = config
     if not bundle.has("poses"):
         raise ValueError("initialisation needs camera poses (run agg priors first)")
@@ -99,16 +99,16 @@ def init_from_bundle(bundle: SceneBundle, config: InitConfig = InitConfig()) -> 
     conf = bundle.dense_depth_confidence if dense is not None else None
     masks = bundle.dynamic_masks
     tracks = bundle.tracklets
-    rigid_rows = [k for k in range(len(tracks.classes)) if tracks.classes[k] == "rigid"] if tracks else []
+    agent_rows = list(range(len(tracks.classes))) if tracks else []  # every agent track, rigid or not
     bg_xyz, bg_rgb = [], []
-    ag = {k: ([], []) for k in rigid_rows}
+    ag = {k: ([], []) for k in agent_rows}
     for i in range(bundle.num_frames):
         uv, cam, rgb = _frame_points(bundle, i, cfg, rng, dense, conf)
         world = cam @ poses[i, :3, :3].T + poses[i, :3, 3]  # [M, 3]
         static = np.ones(len(uv), bool) if masks is None else np.asarray(masks[i])[uv[:, 1], uv[:, 0]] == 0
         bg_xyz.append(world[static])
         bg_rgb.append(np.c_[rgb[static], cam[static, 2]])  # colour and the depth it was seen at
-        for k in rigid_rows:
+        for k in agent_rows:
             if not tracks.valid[k, i]:
                 continue
             box = np.asarray(tracks.boxes[k, i], float)
@@ -130,26 +130,34 @@ def init_from_bundle(bundle: SceneBundle, config: InitConfig = InitConfig()) -> 
     seen = rgbz[:, 3]  # [M] depth each point was seen at
     scales = np.clip(knn_scales(xyz), cfg.min_scale_fraction * seen, cfg.max_scale_fraction * seen)
     background = GaussianParams.from_points(xyz, rgbz[:, :3], cfg.sh_degree, cfg.opacity, scales=scales)
-    rigid = None
-    if rigid_rows:
-        pts, cols, inst, sc = [], [], [], []
-        for j, k in enumerate(rigid_rows):
-            p = np.concatenate(ag[k][0]) if ag[k][0] else np.zeros((0, 3))
-            c = np.concatenate(ag[k][1]) if ag[k][1] else np.zeros((0, 3))
-            if len(p) < cfg.min_agent_points:  # fill the (median) box with uniform points
-                sizes = np.nanmedian(np.asarray(tracks.boxes[k])[np.asarray(tracks.valid[k])][:, [3, 5, 4]], 0)
-                sizes = np.where(np.isfinite(sizes), sizes, 0.05 * depth_med)
-                p = (rng.random((cfg.min_agent_points * 4, 3)) - 0.5) * sizes
-                c = np.broadcast_to(c.mean(0) if len(c) else np.full(3, 0.5), p.shape)
-            if len(p) > cfg.agent_budget:
-                pick = rng.choice(len(p), cfg.agent_budget, replace=False)
-                p, c = p[pick], c[pick]
-            size = float(np.ptp(p, axis=0).max()) if len(p) > 1 else 1.0
-            sc.append(np.clip(knn_scales(p), cfg.min_scale_fraction * size, cfg.max_scale_fraction * 5 * size))
-            pts.append(p)
-            cols.append(c)
-            inst.append(np.full(len(p), j))
-        p, c = np.concatenate(pts), np.concatenate(cols)
-        g = GaussianParams.from_points(p, c, cfg.sh_degree, cfg.opacity, scales=np.concatenate(sc))
-        rigid = (g, np.concatenate(inst), rigid_rows)
-    return {"background": background, "rigid": rigid}
+    out = {"background": background, "rigid": None, "non-rigid": None}
+    for cls in ("rigid", "non-rigid"):
+        rows = [k for k in agent_rows if tracks.classes[k] == cls]
+        if rows:
+            out[cls] = _agent_gaussians(rows, ag, tracks, cfg, rng, depth_med)
+    return out
+
+
+def _agent_gaussians(rows: list[int], ag: dict, tracks, cfg: InitConfig, rng: np.random.Generator,
+                     depth_med: float) -> tuple[GaussianParams, np.ndarray, list[int]]:
+    """Canonical Gaussians of the given track rows from their box-frame points (uniform box fill when too few)."""
+    pts, cols, inst, sc = [], [], [], []
+    for j, k in enumerate(rows):
+        p = np.concatenate(ag[k][0]) if ag[k][0] else np.zeros((0, 3))
+        c = np.concatenate(ag[k][1]) if ag[k][1] else np.zeros((0, 3))
+        if len(p) < cfg.min_agent_points:  # fill the (median) box with uniform points
+            sizes = np.nanmedian(np.asarray(tracks.boxes[k])[np.asarray(tracks.valid[k])][:, [3, 5, 4]], 0)
+            sizes = np.where(np.isfinite(sizes), sizes, 0.05 * depth_med)
+            p = (rng.random((cfg.min_agent_points * 4, 3)) - 0.5) * sizes
+            c = np.broadcast_to(c.mean(0) if len(c) else np.full(3, 0.5), p.shape)
+        if len(p) > cfg.agent_budget:
+            pick = rng.choice(len(p), cfg.agent_budget, replace=False)
+            p, c = p[pick], c[pick]
+        size = float(np.ptp(p, axis=0).max()) if len(p) > 1 else 1.0
+        sc.append(np.clip(knn_scales(p), cfg.min_scale_fraction * size, cfg.max_scale_fraction * 5 * size))
+        pts.append(p)
+        cols.append(c)
+        inst.append(np.full(len(p), j))
+    p, c = np.concatenate(pts), np.concatenate(cols)
+    g = GaussianParams.from_points(p, c, cfg.sh_degree, cfg.opacity, scales=np.concatenate(sc))
+    return g, np.concatenate(inst), rows

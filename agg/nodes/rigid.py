@@ -14,7 +14,7 @@ import torch
 from kornia.geometry.liegroup import So3
 from torch import Tensor, nn
 
-from agg.nodes.gaussians import GaussianParams
+from agg.nodes.gaussians import GaussianParams, append_rows, keep_rows, swap_param
 
 
 def quat_multiply(a: Tensor, b: Tensor) -> Tensor:
@@ -35,7 +35,8 @@ def matrix_to_quat(r: Tensor) -> Tensor:
 class RigidAgents(nn.Module):
     """K rigid instances: canonical Gaussians ``gaussians`` with ``instance`` [N] in 0..K-1, and their poses."""
 
-    def __init__(self, gaussians: GaussianParams, instance: Tensor, world_from_box: Tensor, valid: Tensor):
+    def __init__(self, gaussians: GaussianParams, instance: Tensor, world_from_box: Tensor, valid: Tensor,
+                 track_ids: Tensor | None = None):
         super().__init__()
         wfb = torch.as_tensor(world_from_box, dtype=torch.float32)
         if wfb.ndim != 4 or wfb.shape[2:] != (4, 4):
@@ -55,10 +56,18 @@ class RigidAgents(nn.Module):
         self.register_buffer("valid", valid)  # [T, K]
         self.omega = nn.Parameter(torch.zeros(t, k, 3))  # [T, K, 3]
         self.tau = nn.Parameter(torch.zeros(t, k, 3))  # [T, K, 3]
+        ids = torch.arange(k) if track_ids is None else torch.as_tensor(track_ids, dtype=torch.long).reshape(-1)
+        if ids.shape != (k,):
+            raise ValueError(f"track_ids must be [{k}]")
+        self.register_buffer("track_ids", ids.clone())  # [K] the tracklet id of each instance
 
     @property
     def num_instances(self) -> int:
         return int(self.prior.shape[1])
+
+    @property
+    def num_frames(self) -> int:
+        return int(self.prior.shape[0])
 
     def world_from_box(self, frame: int) -> Tensor:
         """[K, 4, 4] refined poses of every instance at an integer frame."""
@@ -67,14 +76,27 @@ class RigidAgents(nn.Module):
         corr[:, :3, 3] = self.tau[frame]
         return self.prior[frame] @ corr
 
-    def compose(self, frame: int) -> dict[str, Tensor]:
-        """World-frame Gaussians at ``frame`` (the renderer's arguments); invalid instances get opacity 0."""
-        g = self.gaussians.activated()
-        pose = self.world_from_box(frame)[self.instance]  # [N, 4, 4]
-        rot = pose[:, :3, :3]
-        means = (rot @ g["means"][..., None])[..., 0] + pose[:, :3, 3]  # [N, 3]
-        quats = quat_multiply(matrix_to_quat(rot), g["quats"])  # [N, 4]
-        opacities = g["opacities"] * self.valid[frame][self.instance].to(g["opacities"])
+    def canonical(self, frame: int, t: float) -> dict[str, Tensor]:
+        """Canonical-frame Gaussians at a frame / continuous time (a non-rigid node adds its deformation)."""
+        return self.gaussians.activated()
+
+    def compose(self, frame: int, world_from_box: Tensor | None = None, valid: Tensor | None = None,
+                t: float | None = None) -> dict[str, Tensor]:
+        """World-frame Gaussians at ``frame`` (the renderer's arguments); invalid instances get opacity 0.
+
+        ``world_from_box`` [K, 4, 4] and ``valid`` [K] override the node's own poses and validity (interpolated
+        poses of a held-out frame, a simulator's per-request agent overrides); ``t`` in [0, 1] is the continuous
+        time (default ``frame / (T - 1)``)."""
+        if t is None:
+            t = frame / max(self.num_frames - 1, 1)
+        g = self.canonical(frame, t)
+        poses = self.world_from_box(frame) if world_from_box is None else world_from_box
+        poses = poses.to(g["means"])  # [K, 4, 4]
+        rot = poses[:, :3, :3][self.instance]  # [N, 3, 3]
+        means = (rot @ g["means"][..., None])[..., 0] + poses[:, :3, 3][self.instance]  # [N, 3]
+        quats = quat_multiply(matrix_to_quat(poses[:, :3, :3])[self.instance], g["quats"])  # [N, 4]
+        valid = self.valid[frame] if valid is None else torch.as_tensor(valid, dtype=torch.bool)
+        opacities = g["opacities"] * valid.to(g["opacities"].device)[self.instance].to(g["opacities"])
         # view-dependent colour: SH is defined in the canonical frame; evaluating it in world directions is the
         # usual approximation (3DGS agents, OmniRe) and exact for degree 0
         return {"means": means, "quats": quats, "scales": g["scales"], "opacities": opacities, "sh": g["sh"]}
@@ -84,3 +106,62 @@ class RigidAgents(nn.Module):
         return self.gaussians.param_groups(prefix, gaussian_lrs) + [
             {"name": f"{prefix}#omega", "params": [self.omega], "lr": float(pose_lr)},
             {"name": f"{prefix}#tau", "params": [self.tau], "lr": float(pose_lr)}]
+
+    def pose_params(self) -> list[nn.Parameter]:
+        """Parameters with a per-instance axis 1 ([T, K, ...]); ``add_instances`` / ``remove_instances`` resize them."""
+        return [self.omega, self.tau]
+
+    def add_instances(self, gaussians: GaussianParams, instance: Tensor, world_from_box: Tensor, valid: Tensor,
+                      track_ids: Tensor, optimizer: torch.optim.Optimizer | None = None) -> None:
+        """Append k instances: their canonical Gaussians with local ``instance`` [M] in 0..k-1, pose priors
+        ``world_from_box`` [T, k, 4, 4], ``valid`` [T, k] and ``track_ids`` [k]; new rows start with zero
+        corrections and zero optimiser moments."""
+        wfb = torch.as_tensor(world_from_box, dtype=torch.float32).to(self.prior)
+        valid = torch.as_tensor(valid, dtype=torch.bool).to(self.valid.device)
+        k_new = wfb.shape[1]
+        if wfb.shape != (self.num_frames, k_new, 4, 4) or valid.shape != (self.num_frames, k_new):
+            raise ValueError(f"world_from_box must be [{self.num_frames}, k, 4, 4] and valid [{self.num_frames}, k]")
+        k0 = self.num_instances
+        append_rows(self.gaussians, gaussians, optimizer)
+        self.instance = torch.cat([self.instance, torch.as_tensor(instance, dtype=torch.long).to(self.instance) + k0])
+        self.prior = torch.cat([self.prior, torch.where(valid[..., None, None], wfb, torch.eye(4).to(wfb))], 1)
+        self.valid = torch.cat([self.valid, valid], 1)
+        self.track_ids = torch.cat([self.track_ids, torch.as_tensor(track_ids, dtype=torch.long).reshape(-1)])
+        self._resize_instances(optimizer, lambda v: torch.cat([v, v.new_zeros(v.shape[0], k_new, *v.shape[2:])], 1))
+
+    def remove_instances(self, keep: Tensor, optimizer: torch.optim.Optimizer | None = None) -> None:
+        """Keep the instances where ``keep`` [K] is True (their Gaussians, poses and optimiser state)."""
+        keep = torch.as_tensor(keep, dtype=torch.bool).to(self.valid.device)
+        if keep.shape != (self.num_instances,):
+            raise ValueError(f"keep must be [{self.num_instances}] bool")
+        keep_rows(self.gaussians, keep[self.instance], optimizer)
+        new_index = torch.cumsum(keep.long(), 0) - 1  # [K] old instance -> new
+        self.instance = new_index[self.instance[keep[self.instance]]]
+        self.prior, self.valid, self.track_ids = self.prior[:, keep], self.valid[:, keep], self.track_ids[keep]
+        self._resize_instances(optimizer, lambda v: v[:, keep].clone())
+
+    def _resize_instances(self, optimizer, fn) -> None:
+        for name in ("omega", "tau"):
+            old = getattr(self, name)
+            new = nn.Parameter(fn(old.detach()))
+            swap_param(optimizer, old, new, fn)
+            setattr(self, name, new)
+        self._resize_extra(optimizer, fn)
+
+    def _resize_extra(self, optimizer, fn) -> None:
+        """Hook for subclasses with more per-instance parameters."""
+
+    def state(self) -> dict:
+        """Tensors that rebuild the node with ``from_state`` (whatever its size)."""
+        return {"gaussians": self.gaussians.state(), "instance": self.instance.clone(), "prior": self.prior.clone(),
+                "valid": self.valid.clone(), "track_ids": self.track_ids.clone(),
+                "omega": self.omega.detach().clone(), "tau": self.tau.detach().clone()}
+
+    @classmethod
+    def from_state(cls, state: dict) -> "RigidAgents":
+        node = cls(GaussianParams.from_state(state["gaussians"]), state["instance"], state["prior"], state["valid"],
+                   state["track_ids"])
+        with torch.no_grad():
+            node.omega.copy_(state["omega"])
+            node.tau.copy_(state["tau"])
+        return node

@@ -1,0 +1,67 @@
+"""Training data of a bundle at the training resolution: frames, intrinsics, attention maps, the NVS split."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import torch.nn.functional as F  # noqa: N812
+from torch import Tensor
+
+from agg.eval.interpolate import split_frames
+from agg.io.bundle import SceneBundle
+from agg.train.semantic import attention_maps
+
+
+@dataclass
+class TrainData:
+    images: Tensor  # [T, H, W, 3] float32 in [0, 1], training resolution
+    K: Tensor  # [T, 3, 3] intrinsics at the training resolution
+    width: int
+    height: int
+    m_bg: Tensor | None  # [T, H, W] semantic attention (background channels)
+    m_ag: Tensor | None  # [T, H, W] semantic attention (agent channels)
+    train_frames: list[int]
+    test_frames: list[int]
+
+    @property
+    def num_frames(self) -> int:
+        return int(self.images.shape[0])
+
+
+def training_size(width: int, height: int, max_width: int) -> tuple[int, int, float]:
+    """(w, h, factor): the bundle size scaled down (never up) so that w <= max_width."""
+    f = min(1.0, max_width / width)
+    return max(8, int(round(width * f))), max(8, int(round(height * f))), f
+
+
+def resize_images(frames: np.ndarray, width: int, height: int) -> Tensor:
+    """[T, h, w, 3] uint8 -> [T, height, width, 3] float32 (area resampling when shrinking)."""
+    x = torch.as_tensor(np.asarray(frames)).float().div_(255.0).permute(0, 3, 1, 2)  # [T, 3, h, w]
+    if x.shape[-2:] != (height, width):
+        x = F.interpolate(x, size=(height, width), mode="area")
+    return x.permute(0, 2, 3, 1).contiguous()
+
+
+def scale_intrinsics(K: np.ndarray, sx: float, sy: float) -> Tensor:  # noqa: N803
+    """[T, 3, 3] pixel intrinsics for an image resized by (sx, sy) (OpenCV pixel centres)."""
+    k = torch.as_tensor(np.asarray(K, np.float64)).clone()
+    k[:, 0, 0] *= sx
+    k[:, 1, 1] *= sy
+    k[:, 0, 2] = (k[:, 0, 2] + 0.5) * sx - 0.5
+    k[:, 1, 2] = (k[:, 1, 2] + 0.5) * sy - 0.5
+    return k.float()
+
+
+def load_train_data(bundle: SceneBundle, max_width: int, attention_norm: str = "global",
+                    eval_every: int = 5) -> TrainData:
+    w, h, _ = training_size(bundle.width, bundle.height, max_width)
+    images = resize_images(bundle.frames[:], w, h)
+    K = scale_intrinsics(bundle.intrinsics, w / bundle.width, h / bundle.height)  # noqa: N806
+    m_bg = m_ag = None
+    sem = bundle.semantics
+    if sem is not None:
+        m_bg, m_ag = attention_maps(sem.features, sem.C_bg, sem.C_ag, h, w, attention_norm)
+    train, test = split_frames(bundle.num_frames, eval_every)
+    return TrainData(images, K, w, h, m_bg, m_ag, train, test)

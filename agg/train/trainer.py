@@ -1,0 +1,315 @@
+"""The training loop: one optimiser per node group, Tick-Tock phases, densification, topology evolution,
+checkpoints that resume bit-exactly, progress events and cooperative cancellation.
+
+Node groups (``tick_tock.GROUPS``): ``camera`` (pose corrections), ``static`` (background and sky Gaussians),
+``agents`` (every agent node's canonical Gaussians, per-frame poses and deformation network). Each has its own
+Adam optimiser. A step renders one training frame (a seeded shuffled order, epoch by epoch), adds the semantic
+attention loss in Tick / Tock phases (Eq. 3), back-propagates, steps the optimisers of the phase's trainable
+groups, then densifies and, at the topology milestones, evolves the graph.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import torch
+
+from agg.graph import SceneGraph
+from agg.io.bundle import SceneBundle
+from agg.train.config import TrainConfig
+from agg.train.data import TrainData
+from agg.train.densify import DensifyConfig, Densifier
+from agg.train.losses import photometric_loss, psnr, semantic_attention_loss
+from agg.train.tick_tock import GROUPS, TickTockSchedule, set_trainable
+
+
+class Cancelled(Exception):
+    """Training stopped because ``should_stop()`` returned True; the latest state is in the checkpoint."""
+
+
+def scene_extent(graph: SceneGraph) -> float:
+    """A scene size for the scale thresholds: the median distance of the background to the camera path's centre."""
+    centres = graph.camera.prior[:, :3, 3]  # [T, 3]
+    c = centres.mean(0)
+    d = (graph.background.means.detach() - c).norm(dim=-1)
+    radius = float((centres - c).norm(dim=-1).max())
+    return max(float(d.median()) if len(d) else 1.0, radius, 1e-3)
+
+
+class Trainer:
+    def __init__(self, graph: SceneGraph, data: TrainData, config: TrainConfig, bundle: SceneBundle | None = None,
+                 progress: Callable[[dict], None] | None = None, should_stop: Callable[[], bool] | None = None):
+        self.graph, self.data, self.cfg, self.bundle = graph, data, config, bundle
+        self.progress, self.should_stop = progress, should_stop
+        graph.K = data.K.clone()
+        graph.width, graph.height = data.width, data.height
+        cfg = config
+        self.schedule = TickTockSchedule(cfg.milestone(cfg.warmup), max(1, cfg.milestone(cfg.alternate)),
+                                         cfg.milestone(cfg.joint), cfg.tick_tock, cfg.lr.joint_decay)
+        self.extent = scene_extent(graph)
+        self.iteration = 0
+        self.history: list[dict] = []  # one row per iteration: loss, psnr, phase
+        self.spawned: list[int] = []
+        self.pruned: list[int] = []
+        self.generator = torch.Generator().manual_seed(int(cfg.seed))
+        self.order: list[int] = []
+        dcfg = DensifyConfig(grad_threshold=cfg.grad_threshold, refine_start=cfg.densify_from,
+                             refine_stop=cfg.densify_until, refine_every=cfg.densify_every,
+                             reset_every=cfg.opacity_reset_every, max_gaussians=cfg.max_gaussians,
+                             seed=cfg.seed).scaled(cfg.scale)
+        self.densifier = Densifier(dcfg, self.extent) if cfg.densify else None
+        self.topology = self._make_topology() if cfg.topology else None
+        self.optimizers: dict[str, torch.optim.Optimizer] = {}
+        self.build_optimizers()
+        self._t0 = time.perf_counter()
+
+    # ------------------------------------------------------------------ set-up
+    def _make_topology(self):
+        if self.bundle is None or self.bundle.semantics is None or self.bundle.semantics.prototypes is None:
+            return None
+        from agg.train.topology import TopologyConfig, TopologyEvolution
+
+        return TopologyEvolution(TopologyConfig(), self.bundle.semantics, self.data.K.numpy(), self.data.width,
+                                 self.data.height, float(self.bundle.manifest.get("scale", 1.0)))
+
+    def _lr_scale(self) -> float:
+        return 30_000 / max(self.cfg.iterations, 1)
+
+    def param_groups(self) -> dict[str, list[dict]]:
+        g, lr, cfg = self.graph, self.cfg.lr, self.cfg
+        boost = lr.agent_boost if cfg.tick_tock else 1.0
+        pose_scale = self._lr_scale()
+
+        def gaussian_lrs(means_lr: float) -> dict[str, float]:
+            return {"means": means_lr * self.extent, "log_scales": lr.log_scales, "quats": lr.quats,
+                    "opacity_logits": lr.opacity_logits, "sh": lr.sh}
+
+        out: dict[str, list[dict]] = {name: [] for name in GROUPS}
+        out["camera"] = g.camera.param_groups(lr.camera * pose_scale)
+        out["static"] = g.background.param_groups("background", gaussian_lrs(lr.means))
+        if g.sky is not None:
+            out["static"] += g.sky.param_groups("sky", gaussian_lrs(lr.means))
+        for name, node in (("rigid", g.rigid), ("nonrigid", g.nonrigid)):
+            if node is None:
+                continue
+            lrs = gaussian_lrs(lr.agent_means * boost)
+            pose_lr = lr.agent_pose * boost * pose_scale
+            if name == "nonrigid":
+                out["agents"] += node.param_groups(name, lrs, pose_lr, lr.deform)
+            else:
+                out["agents"] += node.param_groups(name, lrs, pose_lr)
+        for groups in out.values():
+            for grp in groups:
+                grp["base_lr"] = grp["lr"]
+        return out
+
+    def build_optimizers(self) -> None:
+        """(Re)build the per-group Adam optimisers, keeping the moments of parameters that still exist."""
+        old = {}
+        for opt in self.optimizers.values():
+            for grp in opt.param_groups:
+                for p in grp["params"]:
+                    if p in opt.state:
+                        old[p] = opt.state[p]
+        self.optimizers = {}
+        for name, groups in self.param_groups().items():
+            if groups:
+                opt = torch.optim.Adam(groups, eps=1e-15)
+                for grp in opt.param_groups:
+                    for p in grp["params"]:
+                        if p in old:
+                            opt.state[p] = old[p]
+                self.optimizers[name] = opt
+
+    def group_params(self) -> dict[str, list[torch.nn.Parameter]]:
+        return {name: [p for grp in opt.param_groups for p in grp["params"]]
+                for name, opt in self.optimizers.items()}
+
+    # ------------------------------------------------------------------ one step
+    def next_frame(self) -> int:
+        if not self.order:
+            perm = torch.randperm(len(self.data.train_frames), generator=self.generator).tolist()
+            self.order = [self.data.train_frames[i] for i in perm]
+        return self.order.pop(0)
+
+    def set_lrs(self, factor: float) -> None:
+        lr = self.cfg.lr
+        t = min(self.iteration / max(self.cfg.iterations, 1), 1.0)
+        decay = (lr.means_final / lr.means) ** t  # exponential means decay (3DGS)
+        for opt in self.optimizers.values():
+            for grp in opt.param_groups:
+                f = factor * (decay if grp["name"].endswith("#means") else 1.0)
+                grp["lr"] = grp["base_lr"] * f
+
+    def trainable_groups(self, phase) -> set:
+        trainable = set(phase.trainable)
+        if self.graph.num_agents == 0 and phase.name == "tock":  # nothing to train in Tock without agents
+            trainable = {"camera", "static"}
+        return trainable
+
+    def forward_backward(self, frame: int, phase) -> tuple[torch.Tensor, torch.Tensor | None, object]:
+        """Freeze the groups the phase does not train, render ``frame``, back-propagate L_photo (+ L_sem).
+        Returns (loss, semantic loss or None, RenderOutput)."""
+        cfg, data = self.cfg, self.data
+        set_trainable(self.group_params(), frozenset(self.trainable_groups(phase)))
+        gt = data.images[frame]
+        out = self.graph.render(frame)
+        if self.densifier is not None and out.meta.means2d.requires_grad:
+            out.meta.means2d.retain_grad()
+        loss = photometric_loss(out.color, gt, cfg.ssim_weight)
+        sem = None
+        if cfg.semantic and phase.attention is not None and data.m_bg is not None:
+            m = (data.m_bg if phase.attention == "bg" else data.m_ag)[frame]
+            sem = semantic_attention_loss(out.color, gt, m, cfg.lambda_sem, cfg.delta)
+            loss = loss + sem
+        if loss.requires_grad:
+            loss.backward()
+        return loss, sem, out
+
+    def step(self) -> dict:
+        cfg, g = self.cfg, self.graph
+        phase = self.schedule.phase(self.iteration)
+        trainable = self.trainable_groups(phase)
+        self.set_lrs(phase.lr_factor)
+        frame = self.next_frame()
+        loss, sem, out = self.forward_backward(frame, phase)
+        if self.topology is not None and g.background.means.grad is not None:
+            self.topology.accumulate(frame, g.background.means.grad)
+        if self.densifier is not None and out.meta.means2d.grad is not None:
+            self._accumulate_2d(out, trainable)
+        for name in trainable:
+            if name in self.optimizers:
+                self.optimizers[name].step()
+        for opt in self.optimizers.values():
+            opt.zero_grad(set_to_none=True)
+        self.iteration += 1
+        self._densify(trainable)
+        if self.topology is not None and self.iteration in {cfg.milestone(m) for m in cfg.topology_at}:
+            self._evolve()
+        row = {"iteration": self.iteration, "frame": frame, "phase": phase.name, "loss": float(loss.detach()),
+               "sem": None if sem is None else float(sem.detach()), "psnr": psnr(out.color, self.data.images[frame])}
+        self.history.append(row)
+        return row
+
+    def _accumulate_2d(self, out, trainable: set) -> None:
+        grad, radii, vis = out.meta.means2d.grad, out.meta.radii, out.meta.visible
+        for key, sl in self.graph.node_slices().items():
+            group = "static" if key in ("background", "sky") else "agents"
+            if sl.stop > sl.start and group in trainable:
+                self.densifier.accumulate(key, grad[sl], radii[sl], vis[sl], self.data.width, self.data.height)
+
+    def _densify(self, trainable: set) -> None:
+        """Densify / prune / reset the Gaussian sets of the groups this phase trains (frozen nodes stay as they
+        are: a Tick never changes an agent)."""
+        if self.densifier is None:
+            return
+        g = self.graph
+        changed = False
+        for key, params in g.gaussian_sets().items():
+            group = "static" if key in ("background", "sky") else "agents"
+            if group not in trainable:
+                continue
+            opt = self.optimizers.get(group)
+            node = getattr(g, key) if key in ("rigid", "nonrigid") else None
+            src = self.densifier.step(key, params, opt, self.iteration,
+                                      groups=node.instance if node is not None else None)
+            if src is None:
+                continue
+            changed = True
+            if node is not None:
+                node.instance = node.instance[src]
+            if key == "background" and self.topology is not None:
+                self.topology.on_rows_changed(src)
+        if changed:
+            self._check_budget()
+
+    def _check_budget(self) -> None:
+        n = len(self.graph.background)
+        if n > self.cfg.max_gaussians:  # the densifier caps per set; keep the invariant visible
+            raise RuntimeError(f"background has {n} Gaussians, over the budget {self.cfg.max_gaussians}")
+
+    def _evolve(self) -> None:
+        report = self.topology.evolve(self.graph, self.optimizers.get("static"), self.iteration)
+        self.spawned += list(report.get("spawned", []))
+        self.pruned += list(report.get("pruned", []))
+        if self.densifier is not None:
+            keep = report.get("bg_keep")
+            if keep is not None:
+                self.densifier.remap("background", torch.nonzero(torch.as_tensor(keep)).reshape(-1))
+            for key in ("rigid", "nonrigid"):
+                self.densifier.forget(key)
+        self.build_optimizers()
+        self.emit(event="topology", report={k: v for k, v in report.items() if k != "bg_keep"})
+
+    # ------------------------------------------------------------------ loop, events, checkpoints
+    def emit(self, **event) -> None:
+        if self.progress is not None:
+            self.progress(event)
+
+    def run(self, checkpoint: Path | None = None, checkpoint_every: int | None = None) -> list[dict]:
+        every = self.cfg.checkpoint_every if checkpoint_every is None else checkpoint_every
+        total = self.cfg.iterations
+        start_it, t0 = self.iteration, time.perf_counter()
+        while self.iteration < total:
+            if self.should_stop is not None and self.should_stop():
+                if checkpoint is not None:
+                    self.save(checkpoint)
+                raise Cancelled(f"cancelled at iteration {self.iteration}")
+            row = self.step()
+            if not math.isfinite(row["loss"]):
+                raise FloatingPointError(f"non-finite loss at iteration {self.iteration}: {row}")
+            done = self.iteration - start_it
+            eta = (time.perf_counter() - t0) / done * (total - self.iteration)
+            if self.iteration % 10 == 0 or self.iteration == total:
+                self.emit(stage="train", iteration=self.iteration, total=total, phase=row["phase"],
+                          loss=row["loss"], psnr=row["psnr"], n_gaussians=self.graph.num_gaussians(),
+                          agents_spawned=len(self.spawned), agents_pruned=len(self.pruned), eta_s=eta)
+            if checkpoint is not None and every and self.iteration % every == 0:
+                self.save(checkpoint)
+        return self.history
+
+    def state_dict(self) -> dict:
+        return {"graph": self.graph.state(), "iteration": self.iteration, "history": list(self.history),
+                "spawned": list(self.spawned), "pruned": list(self.pruned),
+                "generator": self.generator.get_state(), "order": list(self.order),
+                "optimizers": {k: o.state_dict() for k, o in self.optimizers.items()},
+                "densifier": self.densifier.state_dict() if self.densifier is not None else None,
+                "topology": self.topology.state_dict() if self.topology is not None else None,
+                "extent": self.extent, "config": self.cfg.as_dict()}
+
+    def save(self, path: Path) -> None:
+        path = Path(path)
+        tmp = path.with_suffix(".tmp")
+        torch.save(self.state_dict(), tmp)
+        tmp.replace(path)  # atomic: a reader never sees a half-written checkpoint
+
+    @classmethod
+    def resume(cls, path: Path, data: TrainData, config: TrainConfig, bundle: SceneBundle | None = None,
+               **kwargs) -> "Trainer":
+        state = torch.load(path, map_location="cpu", weights_only=False)
+        graph = SceneGraph.from_state(state["graph"])
+        trainer = cls(graph, data, config, bundle, **kwargs)
+        trainer.extent = state["extent"]
+        trainer.build_optimizers()
+        for k, o in trainer.optimizers.items():
+            o.load_state_dict(state["optimizers"][k])
+        trainer.iteration = state["iteration"]
+        trainer.history = list(state["history"])
+        trainer.spawned, trainer.pruned = list(state["spawned"]), list(state["pruned"])
+        trainer.generator.set_state(state["generator"])
+        trainer.order = list(state["order"])
+        if trainer.densifier is not None and state["densifier"] is not None:
+            trainer.densifier.load_state_dict(state["densifier"])
+            trainer.densifier.scene_extent = trainer.extent
+        if trainer.topology is not None and state["topology"] is not None:
+            trainer.topology.load_state_dict(state["topology"])
+        return trainer
+
+
+def seed_everything(seed: int) -> None:
+    torch.manual_seed(seed)
+    np.random.seed(seed % (2**32))
