@@ -34,6 +34,7 @@ class InitConfig:
     max_scale_fraction: float = 0.02  # the agent's box size): 0.02 is ~1.1 degrees seen from the camera
     sh_degree: int = 1
     opacity: float = 0.1
+    fallback_depth: float = 10.0  # scene units: the background shell of a clip without any depth pixel
     seed: int = 0
 
 
@@ -71,6 +72,25 @@ def _frame_points(bundle: SceneBundle, i: int, cfg: InitConfig, rng: np.random.G
     vi = np.clip(np.rint(v).astype(int), 0, bundle.height - 1)
     rgb = np.asarray(bundle.frames.raw[i][vi, ui], np.float32) / 255.0
     return np.stack([ui, vi], -1), np.stack([x, y, z], -1), rgb
+
+
+def _fallback_points(bundle: SceneBundle, cfg: InitConfig, rng: np.random.Generator
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """Points at a constant depth (``fallback_depth`` scene units) on a pixel grid of every frame, coloured from
+    the frame: (xyz [M, 3], rgb + depth [M, 4]). Used only when no frame has a single usable depth pixel."""
+    poses = bundle.world_from_camera
+    step = max(4, int(np.sqrt(bundle.width * bundle.height / max(cfg.pixels_per_frame // 4, 1))))
+    v, u = np.mgrid[step // 2:bundle.height:step, step // 2:bundle.width:step]
+    u, v = u.reshape(-1).astype(float), v.reshape(-1).astype(float)
+    z = np.full(len(u), cfg.fallback_depth)
+    xyz, extra = [], []
+    for i in range(bundle.num_frames):
+        K = bundle.intrinsics[i]  # noqa: N806
+        cam = np.stack([(u - K[0, 2]) / K[0, 0] * z, (v - K[1, 2]) / K[1, 1] * z, z], -1)
+        xyz.append(cam @ poses[i, :3, :3].T + poses[i, :3, 3])
+        rgb = np.asarray(bundle.frames.raw[i][v.astype(int), u.astype(int)], np.float32) / 255.0
+        extra.append(np.c_[rgb, z])
+    return np.concatenate(xyz), np.concatenate(extra)
 
 
 def _voxel_merge(xyz: np.ndarray, extra: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray]:
@@ -120,8 +140,8 @@ def init_from_bundle(bundle: SceneBundle, config: InitConfig = InitConfig()) -> 
             ag[k][0].append(local[inside])
             ag[k][1].append(rgb[inside])
     xyz, rgbz = np.concatenate(bg_xyz), np.concatenate(bg_rgb)
-    if len(xyz) == 0:
-        raise ValueError("no static depth pixel to initialise the background from")
+    if len(xyz) == 0:  # a textureless clip (e.g. black frames): no depth anywhere; start from a fronto-parallel
+        xyz, rgbz = _fallback_points(bundle, cfg, rng)  # shell so that training still has something to fit
     depth_med = float(np.median(rgbz[:, 3]))
     xyz, rgbz = _voxel_merge(xyz, rgbz, cfg.voxel_fraction * depth_med)
     if len(xyz) > cfg.background_budget:

@@ -2,7 +2,8 @@
 
 Iteration milestones are written at the paper's scale (30,000 iterations, Sec. 4.2) and scaled by
 ``iterations / 30000`` (``TrainConfig.milestone``), so every preset keeps the paper's proportions: warm-up to 1/6,
-Tick-Tock alternating every 1/30 until 2/3, then the joint phase; topology evolution at 1/3 and 2/3.
+Tick-Tock alternating every 1/30 until 2/3, then the joint phase; topology evolution at 1/3 and 2/3
+(``agg.train.topology.TopologyConfig.scaled``).
 
 Learning rates: Gaussian means use the 3DGS convention (``lr x scene extent``, decayed exponentially by 100x over
 the run); the agent means and pose-translation rates are raised 10x over OmniRe's while Tick-Tock is on (the paper's
@@ -50,7 +51,6 @@ class TrainConfig:
     warmup: int = 5_000
     alternate: int = 1_000
     joint: int = 20_000
-    topology_at: tuple[int, ...] = (10_000, 20_000)
     # losses
     ssim_weight: float = 0.2
     lambda_sem: float = 0.8
@@ -111,7 +111,6 @@ class TrainConfig:
     def as_dict(self) -> dict:
         d = asdict(self)
         d["ablate"] = sorted(self.ablate)
-        d["topology_at"] = list(self.topology_at)
         return d
 
 
@@ -125,7 +124,7 @@ def _preset(name: str, max_width: int, iterations: int, sh_degree: int, max_gaus
 PRESETS: dict[str, TrainConfig] = {
     # CPU-sized presets; 'paper' is Sec. 4.2 (a GPU run: full resolution, 30k iterations, SH 3)
     "fast": _preset("fast", 320, 1_500, 0, 40_000, agent_budget=1500, checkpoint_every=250),
-    "balanced": _preset("balanced", 480, 3_000, 1, 100_000, agent_budget=3000),
+    "balanced": _preset("balanced", 480, 2_000, 1, 60_000, agent_budget=2000),
     "quality": _preset("quality", 960, 10_000, 2, 300_000, agent_budget=6000, checkpoint_every=1000),
     "paper": _preset("paper", 100_000, 30_000, 3, 1_000_000, agent_budget=20_000, checkpoint_every=2000),
 }

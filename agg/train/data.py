@@ -65,3 +65,11 @@ def load_train_data(bundle: SceneBundle, max_width: int, attention_norm: str = "
         m_bg, m_ag = attention_maps(sem.features, sem.C_bg, sem.C_ag, h, w, attention_norm)
     train, test = split_frames(bundle.num_frames, eval_every)
     return TrainData(images, K, w, h, m_bg, m_ag, train, test)
+
+
+def resize_depth(depth: np.ndarray, width: int, height: int) -> np.ndarray:
+    """[T, h, w] depth (0 = none) -> [T, height, width] float32, nearest (depth must not blend across edges)."""
+    d = torch.as_tensor(np.array(depth, np.float32))[:, None]  # [T, 1, h, w]
+    if d.shape[-2:] != (height, width):
+        d = F.interpolate(d, size=(height, width), mode="nearest")
+    return d[:, 0].numpy()

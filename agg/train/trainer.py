@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Callable
 
@@ -60,7 +61,10 @@ class Trainer:
         dcfg = DensifyConfig(grad_threshold=cfg.grad_threshold, refine_start=cfg.densify_from,
                              refine_stop=cfg.densify_until, refine_every=cfg.densify_every,
                              reset_every=cfg.opacity_reset_every, max_gaussians=cfg.max_gaussians,
-                             seed=cfg.seed).scaled(cfg.scale)
+                             size_prune_start=cfg.opacity_reset_every, seed=cfg.seed).scaled(cfg.scale)
+        # refine statistics need several views per refine, and opacity needs time to recover after a reset:
+        # short presets keep the paper's proportions but not periods below these floors
+        dcfg = replace(dcfg, refine_every=max(dcfg.refine_every, 20), reset_every=max(dcfg.reset_every, 500))
         self.densifier = Densifier(dcfg, self.extent) if cfg.densify else None
         self.topology = self._make_topology() if cfg.topology else None
         self.optimizers: dict[str, torch.optim.Optimizer] = {}
@@ -69,12 +73,19 @@ class Trainer:
 
     # ------------------------------------------------------------------ set-up
     def _make_topology(self):
-        if self.bundle is None or self.bundle.semantics is None or self.bundle.semantics.prototypes is None:
+        """Topology evolution at the scaled milestones (paper: every 10k iterations up to 20k); needs the bundle's
+        semantic features and prototype bank (without them there is nothing to call agent-like)."""
+        b = self.bundle
+        if b is None or b.semantics is None or b.semantics.prototypes is None:
             return None
+        from agg.train.data import resize_depth
         from agg.train.topology import TopologyConfig, TopologyEvolution
 
-        return TopologyEvolution(TopologyConfig(), self.bundle.semantics, self.data.K.numpy(), self.data.width,
-                                 self.data.height, float(self.bundle.manifest.get("scale", 1.0)))
+        depth = resize_depth(b.dense_depth, self.data.width, self.data.height) if b.has("depth_dense") else None
+        ids = [int(i) for i in b.tracklets.ids] if b.tracklets is not None else []
+        return TopologyEvolution(TopologyConfig().scaled(self.cfg.scale), b.semantics, self.data.K.numpy(),
+                                 self.data.width, self.data.height, b.scale,
+                                 depth=depth, reserved_ids=ids)
 
     def _lr_scale(self) -> float:
         return 30_000 / max(self.cfg.iterations, 1)
@@ -188,7 +199,7 @@ class Trainer:
             opt.zero_grad(set_to_none=True)
         self.iteration += 1
         self._densify(trainable)
-        if self.topology is not None and self.iteration in {cfg.milestone(m) for m in cfg.topology_at}:
+        if self.topology is not None and self.topology.config.due(self.iteration):
             self._evolve()
         row = {"iteration": self.iteration, "frame": frame, "phase": phase.name, "loss": float(loss.detach()),
                "sem": None if sem is None else float(sem.detach()), "psnr": psnr(out.color, self.data.images[frame])}
@@ -215,8 +226,12 @@ class Trainer:
                 continue
             opt = self.optimizers.get(group)
             node = getattr(g, key) if key in ("rigid", "nonrigid") else None
-            src = self.densifier.step(key, params, opt, self.iteration,
-                                      groups=node.instance if node is not None else None)
+            extent = None
+            if node is not None and len(params):  # agents: sizes relative to the agents' own extent
+                extent = max(2.0 * float(params.means.detach().abs().quantile(0.98)), 1e-3)
+            src = self.densifier.step(key, params, opt, self.iteration, extent=extent,
+                                      groups=node.instance if node is not None else None,
+                                      reset_opacity=node is None)
             if src is None:
                 continue
             changed = True
