@@ -3,7 +3,9 @@
 Each sub-command lives in its own module under ``agg/commands/`` and exposes
 ``add_parser(subparsers)``, which registers the sub-command and sets ``func`` (a callable taking the parsed
 ``argparse.Namespace`` and returning an exit code). Modules are discovered, so adding a command touches no
-shared file.
+shared file. Commands of other packages (``agg serve`` from ``service``, ``agg worker`` from ``worker``) come
+through the entry-point group ``agg.commands`` (pyproject.toml): each points at a ``register(subparsers)``, so the
+engine imports nothing from the service.
 """
 
 from __future__ import annotations
@@ -27,6 +29,15 @@ def build_parser() -> argparse.ArgumentParser:
             continue
         module = importlib.import_module(f"agg.commands.{info.name}")
         module.add_parser(sub)
+    from importlib.metadata import entry_points
+
+    for ep in sorted(entry_points(group="agg.commands"), key=lambda e: e.name):
+        try:
+            register = ep.load()
+        except ImportError as exc:  # a plugin whose extra dependencies are missing: say so, keep the rest
+            sub.add_parser(ep.name, help=f"(unavailable: {exc})")
+            continue
+        register(sub)
     return parser
 
 

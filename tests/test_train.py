@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import replace
 
+import numpy as np
 import pytest
 import torch
 
@@ -114,3 +115,12 @@ def test_resume_reproduces_the_uninterrupted_loss_curve_and_cancellation_is_coop
     assert [r["phase"] for r in full.history] == [r["phase"] for r in resumed.history]
     torch.testing.assert_close(torch.tensor(b), torch.tensor(a), rtol=1e-5, atol=1e-6)
     assert resumed.graph.num_gaussians() == full.graph.num_gaussians()
+
+
+def test_training_frames_are_the_bundles_frames_at_the_training_size(bundle):
+    data = load_train_data(bundle, 64)
+    assert (data.width, data.height) == (64, 40)
+    full = torch.as_tensor(np.asarray(bundle.frames[:], np.float32))
+    full = full / 255.0 if full.max() > 1.5 else full
+    assert abs(float(data.images.mean()) - float(full.mean())) < 2e-3 and float(data.images.max()) > 0.5
+    torch.testing.assert_close(data.K[0, 0, 0], torch.tensor(float(bundle.intrinsics[0][0, 0]) / 2))

@@ -37,8 +37,13 @@ def training_size(width: int, height: int, max_width: int) -> tuple[int, int, fl
 
 
 def resize_images(frames: np.ndarray, width: int, height: int) -> Tensor:
-    """[T, h, w, 3] uint8 -> [T, height, width, 3] float32 (area resampling when shrinking)."""
-    x = torch.as_tensor(np.asarray(frames)).float().div_(255.0).permute(0, 3, 1, 2)  # [T, 3, h, w]
+    """[T, h, w, 3] uint8 (0..255) or float (0..1) -> [T, height, width, 3] float32 in [0, 1] (area resampling
+    when shrinking)."""
+    a = np.asarray(frames)
+    x = torch.as_tensor(a).float()
+    if a.dtype == np.uint8:
+        x = x.div_(255.0)
+    x = x.permute(0, 3, 1, 2)  # [T, 3, h, w]
     if x.shape[-2:] != (height, width):
         x = F.interpolate(x, size=(height, width), mode="area")
     return x.permute(0, 2, 3, 1).contiguous()

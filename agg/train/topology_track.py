@@ -1,0 +1,273 @@
+"""Functional core of adaptive topology evolution (paper Sec. 3.3, Algorithm 1): no graph, no optimiser.
+
+- ``project``: world points -> pixels, camera depth and an in-image test (OpenCV pinhole).
+- ``sample_features`` / ``prototype_bank`` / ``agent_like``: the semantic filter. The features F_t are the bundle's
+  low-resolution PCA features [h, w, C]; a point at pixel (u, v) of the training resolution reads the cell at
+  ``((u + 0.5) w / W - 0.5, (v + 0.5) h / H - 0.5)`` (bilinear). A point is agent-like when its best cosine
+  similarity to B_rigid / B_non-rigid exceeds both its similarity to B_background and ``tau_sem``.
+- ``cluster``: scikit-learn DBSCAN over world means.
+- ``half_extents`` / ``inside_box``: box-frame extents of agent instances from their canonical Gaussians, and the
+  point-in-(grown)-box test used to match clusters to existing agents.
+- ``track_clusters``: constant-velocity Kalman tracking of the unmatched cluster centres over the frames
+  (``agg.priors.kalman.track_points``: gated Hungarian association, RTS smoothing); ``longest_run`` gives a
+  track's longest run of consecutive hits (the paper's age >= tau_life test).
+- ``spawn_trajectory``: a track of cluster centroids (visible-surface samples) -> box centres
+  (``box_centre_from_surface``), RTS-smoothed again -> ``trajectory_poses``: per-frame ``world_from_box``
+  [T, 4, 4] and validity [T]; ``nearest_frame`` picks the frame each spawned Gaussian is canonicalised at.
+
+Lengths are scene units throughout; the caller converts metric settings with the bundle's scale
+(``metric = scale * scene_units``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.stats import chi2
+
+from agg.priors.kalman import TrackHistory, smooth_sequence, track_points
+from agg.priors.prototypes import CLASS_NAMES, cosine_scores
+
+
+def project(means: np.ndarray, camera_from_world: np.ndarray, K: np.ndarray, width: int, height: int,  # noqa: N803
+            near: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """World points [N, 3] -> pixels uv [N, 2], camera z [N] and in-view [N] bool (z > near, inside the image)."""
+    pc = means @ camera_from_world[:3, :3].T + camera_from_world[:3, 3]  # [N, 3]
+    z = pc[:, 2]
+    zs = np.where(z > near, z, 1.0)
+    uv = (pc[:, :2] / zs[:, None]) @ K[:2, :2].T + K[:2, 2]  # [N, 2]
+    vis = (z > near) & (uv[:, 0] >= -0.5) & (uv[:, 0] < width - 0.5) & (uv[:, 1] >= -0.5) & (uv[:, 1] < height - 0.5)
+    return uv, z, vis
+
+
+def sample_features(features: np.ndarray, uv: np.ndarray, width: int, height: int) -> np.ndarray:
+    """Bilinear samples [M, C] of a low-resolution feature map [h, w, C] at training-resolution pixels uv [M, 2]."""
+    h, w = features.shape[:2]
+    x = np.clip((uv[:, 0] + 0.5) * w / width - 0.5, 0, w - 1)
+    y = np.clip((uv[:, 1] + 0.5) * h / height - 0.5, 0, h - 1)
+    x0, y0 = np.floor(x).astype(np.int64), np.floor(y).astype(np.int64)
+    x1, y1 = np.minimum(x0 + 1, w - 1), np.minimum(y0 + 1, h - 1)
+    fx, fy = (x - x0)[:, None], (y - y0)[:, None]
+    f = np.asarray(features, np.float32)
+    return ((1 - fx) * (1 - fy) * f[y0, x0] + fx * (1 - fy) * f[y0, x1] + (1 - fx) * fy * f[y1, x0]
+            + fx * fy * f[y1, x1])
+
+
+def prototype_bank(semantics) -> dict[str, np.ndarray] | None:
+    """The prototype bank in the features' (PCA) space, or None when the bundle has none (or cannot map it)."""
+    protos = semantics.prototypes if semantics is not None else None
+    if not protos or any(k not in protos for k in CLASS_NAMES):
+        return None
+    if semantics.prototype_space == "pca":
+        return {k: np.asarray(protos[k], np.float32).reshape(-1, semantics.features.shape[-1]) for k in CLASS_NAMES}
+    if semantics.pca_basis is None or semantics.pca_mean is None:
+        return None
+    basis, mean = np.asarray(semantics.pca_basis, np.float64), np.asarray(semantics.pca_mean, np.float64)
+    return {k: ((np.asarray(protos[k], np.float64).reshape(-1, len(mean)) - mean) @ basis).astype(np.float32)
+            for k in CLASS_NAMES}
+
+
+def agent_like(features: np.ndarray, bank: dict[str, np.ndarray], tau_sem: float) -> tuple[np.ndarray, np.ndarray]:
+    """features [M, C] -> (agent-like [M] bool, non-rigid [M] bool: B_non-rigid beats B_rigid).
+
+    Agent-like: max(P_rigid, P_non-rigid) > max(P_background, tau_sem) (Algorithm 1, line 4)."""
+    if len(features) == 0:
+        return np.zeros(0, bool), np.zeros(0, bool)
+    s = cosine_scores(features, bank)  # [M, 3] background, rigid, non-rigid
+    ag = s[:, 1:].max(1)
+    return ag > np.maximum(s[:, 0], tau_sem), s[:, 2] > s[:, 1]
+
+
+def cluster(points: np.ndarray, eps: float, min_samples: int) -> np.ndarray:
+    """DBSCAN labels [M] (-1 = noise) of world points [M, 3]."""
+    from sklearn.cluster import DBSCAN
+
+    if len(points) < max(min_samples, 1):
+        return np.full(len(points), -1, np.int64)
+    return DBSCAN(eps=float(eps), min_samples=int(min_samples)).fit(points).labels_.astype(np.int64)
+
+
+def half_extents(canonical_means: np.ndarray, instance: np.ndarray, k: int, quantile: float = 0.98,
+                 minimum: float = 0.0) -> np.ndarray:
+    """[k, 3] box-frame half extents of k instances: the ``quantile`` of |canonical mean| per axis (0 if empty)."""
+    out = np.zeros((k, 3))
+    for j in range(k):
+        m = np.abs(canonical_means[instance == j])
+        if len(m):
+            out[j] = np.quantile(m, quantile, axis=0)
+    return np.maximum(out, minimum)
+
+
+def inside_box(points: np.ndarray, world_from_box: np.ndarray, half: np.ndarray) -> np.ndarray:
+    """[M] bool: world points [M, 3] inside the box ``world_from_box`` [4, 4] of half extents [3]."""
+    local = (points - world_from_box[:3, 3]) @ world_from_box[:3, :3]  # R^T (p - c)
+    return np.all(np.abs(local) <= half, axis=1)
+
+
+@dataclass(frozen=True)
+class TrackParams:
+    """Constant-velocity tracking of cluster centres (scene units, per frame)."""
+
+    meas_sigma: float  # centroid measurement std
+    accel_sigma: float  # white-acceleration std per frame^2
+    init_vel_sigma: float  # std of the unknown initial velocity
+    gate_prob: float = 0.99  # chi-square gate (3 dof) on the squared Mahalanobis distance
+    max_missed: int = 1  # consecutive frames a track may coast
+
+
+def track_clusters(centres: list[np.ndarray], p: TrackParams) -> list[TrackHistory]:
+    """Track cluster centres over T frames (centres[t]: [n_t, 3], empty where a frame has none or no statistics).
+    Returns every track ever started (``agg.priors.kalman.TrackHistory``, in order of creation)."""
+    r_steps = [np.tile(np.eye(3) * p.meas_sigma ** 2, (len(c), 1, 1)) for c in centres]
+    return track_points([np.asarray(c, float).reshape(-1, 3) for c in centres], r_steps, np.ones(len(centres)),
+                        accel_var=p.accel_sigma ** 2, init_vel_var=p.init_vel_sigma ** 2,
+                        gate=float(chi2.ppf(p.gate_prob, 3)), max_missed=p.max_missed)
+
+
+def longest_run(hit: np.ndarray) -> tuple[int, int]:
+    """(length, start) of the longest run of True in hit [T] (consecutive frames with a measurement)."""
+    best, start, run, run_start = 0, -1, 0, 0
+    for i, h in enumerate(np.asarray(hit, bool)):
+        if h:
+            if run == 0:
+                run_start = i
+            run += 1
+            if run > best:
+                best, start = run, run_start
+        else:
+            run = 0
+    return best, start
+
+
+def visible_surface_offset(half: np.ndarray, view_dir: np.ndarray) -> np.ndarray:
+    """[3] box-frame offset from a box's centre to the centroid of its visible surface.
+
+    half [3]: half extents along the box axes; view_dir [3]: unit direction from the camera to the box, box frame.
+    A face is visible when its outward normal faces the camera; pixels (and so depth points / Gaussians) sample
+    it in proportion to its projected area, ``area * |n . d|``, so the visible centroid is the face centres'
+    average with those weights. Subtracting the (rotated) offset from a measured visible centroid recovers the
+    box centre, which a plain centroid of surface points misses by up to half the box's depth."""
+    num, den = np.zeros(3), 0.0
+    for a in range(3):
+        b, c = [i for i in range(3) if i != a]
+        area = 4.0 * half[b] * half[c]
+        for sign in (-1.0, 1.0):
+            cos = -sign * view_dir[a]  # n . (-d)
+            if cos > 0:
+                w = area * cos
+                num[a] += w * sign * half[a]
+                den += w
+    return num / den if den > 0 else num
+
+
+def box_centre_from_surface(centroid: np.ndarray, camera_centre: np.ndarray, yaw: float, half: np.ndarray,
+                            iterations: int = 3) -> np.ndarray:
+    """Box centre [3] whose visible surface (seen from ``camera_centre``) has the measured ``centroid`` [3]."""
+    rot = pose_from_yaw(np.zeros(3), yaw)[:3, :3]
+    centre = np.asarray(centroid, float).copy()
+    for _ in range(iterations):
+        d = centre - camera_centre
+        d = rot.T @ (d / max(np.linalg.norm(d), 1e-12))
+        centre = centroid - rot @ visible_surface_offset(half, d)
+    return centre
+
+
+def yaw_from_heading(dx: float, dz: float) -> float:
+    """Box yaw (rotation about world y, docs/BUNDLE.md) whose +x axis points along the ground direction (dx, dz)."""
+    return float(np.arctan2(-dz, dx))
+
+
+def pose_from_yaw(centre: np.ndarray, yaw: float) -> np.ndarray:
+    """[4, 4] world_from_box with rotation R_y(yaw) and the given centre [3]."""
+    c, s = np.cos(yaw), np.sin(yaw)
+    p = np.eye(4)
+    p[:3, :3] = [[c, 0, s], [0, 1, 0], [-s, 0, c]]
+    p[:3, 3] = centre
+    return p
+
+
+def ground_axis_yaw(points: np.ndarray) -> float:
+    """Yaw of the principal ground-plane (x, z) axis of points [M, 3] (a static agent's heading, up to sign)."""
+    if len(points) < 2:
+        return 0.0
+    xz = points[:, [0, 2]] - points[:, [0, 2]].mean(0)
+    _, _, vt = np.linalg.svd(xz, full_matrices=False)
+    return yaw_from_heading(vt[0, 0], vt[0, 1])
+
+
+def trajectory_poses(state: np.ndarray, *, min_speed: float, extend: int,
+                     in_view, fallback_yaw: float) -> tuple[np.ndarray, np.ndarray]:
+    """Per-frame box poses from a smoothed track.
+
+    state [T, 6] (x, y, z, vx, vy, vz per frame; NaN outside the track's first..last hit). Inside the track's
+    life the centre is the smoothed position (coasted across gaps); up to ``extend`` frames before / after it the
+    centre is extrapolated with the end velocity and the frame counts as valid while ``in_view(frame, centre)``
+    holds; beyond that the pose is held constant (invalid). The yaw follows the smoothed ground velocity (x, z)
+    where the speed is at least ``min_speed`` per frame (directions opposing the median one are flipped: a noisy
+    slow track must not turn around), is held from the nearest such frame elsewhere, and is ``fallback_yaw``
+    when the track never moves that fast.
+    Returns world_from_box [T, 4, 4] and valid [T] bool."""
+    n = len(state)
+    life = np.flatnonzero(~np.isnan(state[:, 0]))
+    first, last = int(life[0]), int(life[-1])
+    centre = np.full((n, 3), np.nan)
+    centre[first:last + 1] = state[first:last + 1, :3]
+    valid = np.zeros(n, bool)
+    valid[first:last + 1] = True
+    for direction, end in ((-1, first), (1, last)):
+        v = state[end, 3:]
+        i, steps = end + direction, 1
+        while 0 <= i < n:
+            c = state[end, :3] + v * direction * min(steps, extend)
+            centre[i] = c
+            if steps <= extend and in_view(i, c):
+                valid[i] = True
+            i, steps = i + direction, steps + 1
+    speed = np.linalg.norm(state[:, [3, 5]], axis=1)  # [T], NaN outside life
+    moving = np.flatnonzero(np.nan_to_num(speed) >= min_speed)
+    yaw = np.full(n, fallback_yaw)
+    if len(moving):
+        unit = state[moving][:, [3, 5]] / speed[moving, None]
+        ref = np.median(unit, axis=0)
+        for j, i in enumerate(moving):
+            yaw_i = yaw_from_heading(*unit[j])
+            yaw[i] = yaw_i if unit[j] @ ref >= 0 or len(moving) == 1 else yaw_from_heading(*-unit[j])
+        nearest = moving[np.abs(np.arange(n)[:, None] - moving[None]).argmin(1)]
+        yaw = yaw[nearest]
+    poses = np.stack([pose_from_yaw(centre[i], yaw[i]) for i in range(n)])
+    return poses, valid
+
+
+def spawn_trajectory(state: np.ndarray, centroids: dict[int, np.ndarray], camera_centres: np.ndarray,
+                     half: np.ndarray, in_view, fallback_yaw: float, *, meas_sigma: float, accel_sigma: float,
+                     init_vel_sigma: float, min_speed: float, extend: int) -> tuple[np.ndarray, np.ndarray]:
+    """Pose prior of a spawned agent: world_from_box [T, 4, 4] and valid [T].
+
+    ``state`` [T, 6] is the tracker's smoothed track of the cluster centroids ``centroids`` {frame: [3]}, which
+    sample the agent's visible surface, not its centre. Each centroid is moved back to the centre of a box of
+    half extents ``half`` (heading from the track, seen from ``camera_centres`` [T, 3]: ``box_centre_from_
+    surface``), the corrected centres are RTS-smoothed again with the smaller ``accel_sigma`` (a steady
+    heading), and ``trajectory_poses`` turns the result into poses."""
+    poses, _ = trajectory_poses(state, min_speed=min_speed, extend=extend, in_view=in_view,
+                                fallback_yaw=fallback_yaw)
+    z = np.full((len(state), 3), np.nan)
+    for t, c in centroids.items():
+        yaw = float(np.arctan2(poses[t, 0, 2], poses[t, 0, 0]))
+        z[t] = box_centre_from_surface(c, camera_centres[t], yaw, half)
+    smooth, _ = smooth_sequence(z, np.tile(np.eye(3) * meas_sigma ** 2, (len(state), 1, 1)),
+                                accel_var=accel_sigma ** 2, init_vel_var=init_vel_sigma ** 2)
+    return trajectory_poses(smooth, min_speed=min_speed, extend=extend, in_view=in_view, fallback_yaw=fallback_yaw)
+
+
+def nearest_frame(points: np.ndarray, rows: np.ndarray, members: list[tuple[int, np.ndarray]],
+                  poses: np.ndarray) -> np.ndarray:
+    """[M] frame at which each of the rows (world points [M, 3]) enters its agent's canonical frame: among the
+    frames whose cluster holds the row (``members``: (frame, rows)), the one whose box centre is nearest."""
+    frame_of = np.zeros(len(rows), np.int64)
+    best = np.full(len(rows), np.inf)
+    for t, m in members:
+        d = np.where(np.isin(rows, m), np.linalg.norm(points - poses[t, :3, 3], axis=1), np.inf)
+        better = d < best
+        frame_of[better], best[better] = t, d[better]
+    return frame_of
