@@ -20,6 +20,9 @@ if [ ${#need_apt[@]} -gt 0 ]; then
   fi
 fi
 
+# The service and its tests need redis-server (a private one per test, on a random loopback port).
+bash scripts/install_service_deps.sh
+
 $PY -m pip install -q --upgrade "pip>=23" >/dev/null
 $PY -m pip install -q "torch==2.13.0"
 $PY -m pip install -q --no-build-isolation -e ".[test]"

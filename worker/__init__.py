@@ -1,0 +1,1 @@
+"""Job runner (RQ worker) and the gRPC servers of the AGG service."""
