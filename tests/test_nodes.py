@@ -177,3 +177,34 @@ def test_rigid_rejects_bad_inputs():
     valid = torch.ones(3, 1, dtype=torch.bool)
     valid[1, 0] = False  # a NaN pose where the instance is absent is fine (the bundle writes NaN there)
     assert RigidAgents(g, torch.tensor([0, 0]), bad, valid).compose(1)["opacities"].abs().sum() == 0
+
+
+def test_spawning_two_agents_at_once_keeps_one_instance_index_per_gaussian():
+    """Regression: topology evolution concatenates the spawned sets; the instance index must be counted first."""
+    from agg.nodes.rigid import RigidAgents
+    from agg.train import topology
+
+    t = 3
+    base = GaussianParams.from_points(np.zeros((4, 3)), np.full((4, 3), 0.5), 0, 0.5, scales=np.full(4, 0.1))
+    node = RigidAgents(base, torch.zeros(4, dtype=torch.long), torch.eye(4).repeat(t, 1, 1, 1),
+                       torch.ones(t, 1, dtype=torch.bool), torch.tensor([1]))
+
+    class Graph:
+        rigid = node
+        background = GaussianParams.from_points(np.random.default_rng(0).normal(size=(30, 3)),
+                                                np.full((30, 3), 0.5), 0, 0.5, scales=np.full(30, 0.1))
+
+        def agent_nodes(self):
+            return [node]
+
+    evo = topology.TopologyEvolution(topology.TopologyConfig(), None, np.eye(3)[None], 32, 24)
+    plans = [{"rows": np.arange(0, 7), "frame_of": np.zeros(7, int), "poses": np.tile(np.eye(4), (t, 1, 1)),
+              "valid": np.ones(t, bool), "frames": t, "class": "rigid"},
+             {"rows": np.arange(7, 12), "frame_of": np.zeros(5, int), "poses": np.tile(np.eye(4), (t, 1, 1)),
+              "valid": np.ones(t, bool), "frames": t, "class": "rigid"}]
+    report = {"pruned": [], "spawned": [], "new_nodes": [], "reassigned": 0, "rows_changed": []}
+    g = Graph()
+    evo._apply(g, None, report, np.full((30, 2), -1), np.zeros(30, int), [], plans)
+    assert len(node.instance) == len(node.gaussians) == 16
+    assert node.instance.tolist() == [0] * 4 + [1] * 7 + [2] * 5 and node.num_instances == 3
+    assert len(g.background) == 18

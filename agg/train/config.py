@@ -31,7 +31,8 @@ class LearningRates:
     quats: float = 1e-3
     opacity_logits: float = 5e-2
     sh: float = 2.5e-3  # degree 0; higher bands / 20
-    camera: float = 1e-5  # per step at the paper's 30k iterations (scaled, see module doc)
+    camera: float = 1e-5  # translation, per step at the paper's 30k iterations (scaled, see module doc)
+    camera_rotation: float = 1e-5  # radians, per step at 30k iterations (the paper's camera rate)
     agent_pose: float = 1e-5  # translation; x agent_boost while Tick-Tock is on (paper: 1e-4)
     deform: float = 1e-3
     agent_boost: float = 10.0

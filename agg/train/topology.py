@@ -400,10 +400,11 @@ class TopologyEvolution:
             ids = list(range(next_id, next_id + len(spawned)))
             wfb = torch.as_tensor(np.stack([p["poses"] for p in spawn], 1), dtype=torch.float32)  # [T, k, 4, 4]
             valid = torch.as_tensor(np.stack([p["valid"] for p in spawn], 1))  # [T, k]
+            # local instance index of every row, counted before the sets are concatenated into spawned[0]
+            instance = torch.cat([torch.full((len(g),), j, dtype=torch.long) for j, g in enumerate(spawned)])
             params = spawned[0]
             for extra in spawned[1:]:
                 append_rows(params, extra)
-            instance = torch.cat([torch.full((len(g),), j, dtype=torch.long) for j, g in enumerate(spawned)])
             if graph.rigid is None:
                 dev = bg.means.device
                 graph.rigid = RigidAgents(params, instance, wfb, valid, torch.as_tensor(ids)).to(dev)

@@ -101,6 +101,7 @@ class Trainer:
 
         out: dict[str, list[dict]] = {name: [] for name in GROUPS}
         out["camera"] = g.camera.param_groups(lr.camera * pose_scale)
+        out["camera"][0]["lr"] = lr.camera_rotation * pose_scale  # camera#omega
         out["static"] = g.background.param_groups("background", gaussian_lrs(lr.means))
         if g.sky is not None:
             out["static"] += g.sky.param_groups("sky", gaussian_lrs(lr.means))
