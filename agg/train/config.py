@@ -117,7 +117,7 @@ class TrainConfig:
 
 def _preset(name: str, max_width: int, iterations: int, sh_degree: int, max_gaussians: int, **kw) -> TrainConfig:
     init = InitConfig(background_budget=max_gaussians // 2, agent_budget=kw.pop("agent_budget", 3000),
-                      sh_degree=sh_degree)
+                      sh_degree=sh_degree, opacity=kw.pop("init_opacity", 0.1))
     return TrainConfig(name=name, max_width=max_width, iterations=iterations, sh_degree=sh_degree,
                        max_gaussians=max_gaussians, init=init, **kw)
 
@@ -130,7 +130,7 @@ PRESETS: dict[str, TrainConfig] = {
     "paper": _preset("paper", 100_000, 30_000, 3, 1_000_000, agent_budget=20_000, checkpoint_every=2000),
 }
 # tests only: a few dozen iterations on tiny frames
-PRESETS["tiny"] = _preset("tiny", 160, 60, 0, 20_000, agent_budget=500, checkpoint_every=20)
+PRESETS["tiny"] = _preset("tiny", 160, 80, 0, 20_000, agent_budget=500, checkpoint_every=20, init_opacity=0.5)
 
 
 def get_preset(name: str) -> TrainConfig:
