@@ -58,7 +58,7 @@ def create_app(config: ServiceConfig, keystore: KeyStore, *, reaper: bool = True
     async def lifespan(app: FastAPI):
         config.uploads_dir.mkdir(parents=True, exist_ok=True)
         config.scenes_dir.mkdir(parents=True, exist_ok=True)
-        app.state.aredis = aioredis.Redis.from_url(config.redis_url, health_check_interval=30)
+        app.state.aredis = aioredis.Redis.from_url(config.redis_url, socket_timeout=30, health_check_interval=30)
         task = asyncio.create_task(_reaper(store, config.reap_interval_s)) if reaper else None
         try:
             yield

@@ -1,8 +1,8 @@
-"""``agg demo``: fit 3D Gaussians to a frame of the bundled dashcam clip with the CPU renderer.
+"""``agg demo-render``: fit 3D Gaussians to a frame of the bundled dashcam clip with the CPU renderer.
 
 It shows the renderer training at interactive speed on a CPU: Gaussians start at random depths along random pixel
 rays with noisy colours, then Adam fits them to the frame. Writes ``fit.png`` (target | render | depth) and
-``metrics.json`` to ``--out``.
+``metrics.json`` to ``--out``. (``agg demo``, the README's main command, runs the whole service: service/demo.py.)
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ SAMPLE = Path(__file__).resolve().parents[2] / "samples" / "dashcam.mp4"
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("demo", help="fit Gaussians to a frame of the bundled sample clip (renderer demo)",
+    p = sub.add_parser("demo-render", help="fit Gaussians to a frame of the bundled sample clip (renderer demo)",
                        description=__doc__)
     p.add_argument("--video", type=Path, default=SAMPLE, help="video to take the frame from")
     p.add_argument("--frame", type=int, default=0, help="frame index")
@@ -26,7 +26,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--steps", type=int, default=300)
     p.add_argument("--backend", default="auto", choices=["auto", "cpu", "torch", "cuda"])
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--out", type=Path, default=Path("runs/demo"))
+    p.add_argument("--out", type=Path, default=Path("runs/demo-render"))
     p.set_defaults(func=run)
 
 
