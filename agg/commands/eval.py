@@ -24,18 +24,19 @@ KEYS = ("psnr", "ssim", "lpips", "psnr_agents", "ssim_agents", "split", "n_test_
 
 
 def run(args: argparse.Namespace) -> int:
-    from agg.commands._scene import open_scene
+    from agg.scene import Scene, SceneNotReady, SceneUnreadable
     from agg.eval.nvs import evaluate
     from agg.io.bundle import SceneBundle
     from agg.train.data import resize_images
 
     try:
-        meta, graph = open_scene(args.scene)
+        scene = Scene.load(args.scene)
+        meta, graph = scene.meta, scene.graph
         bundle = SceneBundle.load(meta["bundle"])
         frames = sorted(set(meta["test_frames"]))
         images = resize_images(bundle.frames[:], graph.width, graph.height)
         metrics = evaluate(graph, bundle, frames, meta["train_frames"], images=images, max_frames=args.max_frames)
-    except (ValueError, OSError) as exc:
+    except (ValueError, OSError, SceneNotReady, SceneUnreadable) as exc:
         print(f"agg eval: error: {exc}", file=sys.stderr)
         return 2
     (Path(args.scene) / "metrics.json").write_text(json.dumps(metrics, indent=1))

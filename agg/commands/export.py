@@ -3,11 +3,9 @@
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
-import torch
 
 
 def add_parser(subparsers) -> None:
@@ -23,21 +21,19 @@ def add_parser(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from agg.commands._scene import open_scene
-    from agg.export.graph_json import scene_graph_json
-    from agg.export.ply import export_graph_ply
+    from agg.export import export_scene
+    from agg.scene import Scene, SceneNotReady, SceneUnreadable
 
     try:
-        meta, graph = open_scene(args.scene)
+        scene = Scene.load(args.scene)
+        meta, graph = scene.meta, scene.graph
         if not 0 <= args.frame < graph.num_frames:
             raise ValueError(f"frame {args.frame} is out of range [0, {graph.num_frames})")
         ply = Path(args.ply or Path(args.scene) / "scene.ply")
         out = Path(args.graph or Path(args.scene) / "graph.json")
-        with torch.no_grad():
-            export_graph_ply(graph, ply, frame=args.frame)
-            doc = scene_graph_json(graph, meta["timestamps_us"], meta={"preset": meta.get("preset")})
-        out.write_text(json.dumps(doc))
-    except (ValueError, OSError) as exc:
+        doc = export_scene(graph, ply, out, meta["timestamps_us"], meta={"preset": meta.get("preset")},
+                           frame=args.frame)
+    except (ValueError, OSError, SceneNotReady, SceneUnreadable) as exc:
         print(f"agg export: error: {exc}", file=sys.stderr)
         return 2
     print(f"wrote {ply} ({graph.num_gaussians()} Gaussians) and {out} ({len(doc.get('nodes', []))} nodes)")

@@ -9,6 +9,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from agg.eval.interpolate import interpolate_pose
+
 
 def add_parser(subparsers) -> None:
     p = subparsers.add_parser("render", help="render a trained scene at frames, times or a given camera pose",
@@ -41,74 +43,68 @@ def _frames(spec: str, n: int) -> list[int]:
     return [f]
 
 
-def _image(out, what: str, graph, frame, cam, poses, valid) -> np.ndarray:
+def _image(res: dict, what: str) -> np.ndarray:
+    """[H, W, 3] uint8 picture of one output of ``Scene.render``."""
     if what == "rgb":
-        return (out.color.clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8)
+        return (res["rgb"] * 255 + 0.5).astype(np.uint8)
     if what == "alpha":
-        return np.repeat((out.alpha.clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8)[..., None], 3, -1)
+        return np.repeat((np.clip(res["alpha"], 0, 1) * 255 + 0.5).astype(np.uint8)[..., None], 3, -1)
     if what == "depth":
-        d = out.depth.numpy()
+        d = res["depth"]
         valid_d = d[d > 0]
         hi = np.percentile(valid_d, 98) if valid_d.size else 1.0
         v = (1.0 - np.clip(d / max(hi, 1e-6), 0, 1)) * (d > 0)
         return np.repeat((v * 255).astype(np.uint8)[..., None], 3, -1)
-    g = graph.compose(frame, agent_poses=poses, agent_valid=valid)
-    onehot = torch.nn.functional.one_hot(g["node"], int(g["node"].max()) + 1).float()
-    ids = graph.render(frame, world_from_camera=cam, agent_poses=poses, agent_valid=valid, colors=onehot)
-    slot = ids.color.argmax(-1).numpy()
+    ids = res["instance"]  # [H, W] track ids, 0 = none
     rng = np.random.default_rng(7)
-    palette = np.vstack([[0, 0, 0], rng.integers(60, 255, (max(int(slot.max()), 1), 3))]).astype(np.uint8)
-    return palette[np.where(ids.alpha.numpy() > 0.5, slot, 0)]
+    palette = np.vstack([[0, 0, 0], rng.integers(60, 255, (int(ids.max()) if ids.size else 0, 3))]).astype(np.uint8)
+    return palette[ids]
 
 
 def run(args: argparse.Namespace) -> int:
-    from agg.commands._scene import open_scene
-    from agg.eval.interpolate import interpolate_pose
+    from agg.scene import Scene, SceneNotReady, SceneUnreadable
 
+    output = {"rgb": "rgb", "depth": "depth", "alpha": "alpha", "instances": "instance"}[args.what]
     try:
-        meta, graph = open_scene(args.scene)
-        n = graph.num_frames
-        ts = np.asarray(meta["timestamps_us"], np.float64)
-        cams = graph.camera.world_from_camera().detach()  # [T, 4, 4]
+        scene = Scene.load(args.scene)
+        n, ts = scene.num_frames, scene.timestamps_us
 
-        def at_time(s: float) -> float:
-            t_us = ts[0] + s * 1e6
-            if not ts[0] <= t_us <= ts[-1]:
-                raise ValueError(f"time {s} s is outside the clip [0, {(ts[-1] - ts[0]) / 1e6:.3f}] s")
-            return float(np.interp(t_us, ts, np.arange(n)))
+        def at_time(s: float) -> int:  # timestamp of a time in seconds from the first frame
+            return int(round(ts[0] + s * 1e6))
 
-        jobs = []  # (frame index for the agents, fractional frame, camera pose or None)
+        jobs = []  # (timestamp_us, world_from_camera [4, 4] or None: the refined camera at that time)
         if args.frame is not None:
-            jobs = [(f, float(f), None) for f in _frames(args.frame, n)]
+            jobs = [(int(ts[f]), None) for f in _frames(args.frame, n)]
         elif args.time is not None:
-            x = at_time(args.time)
-            jobs = [(int(round(x)), x, None)]
+            jobs = [(at_time(args.time), None)]
         else:
             m = np.loadtxt(args.pose, dtype=np.float64).reshape(-1)
             if m.size not in (12, 16) or not np.isfinite(m).all():
                 raise ValueError(f"{args.pose}: need 12 or 16 finite numbers (a 3x4 or 4x4 world_from_camera)")
             pose = np.eye(4)
             pose[:3] = m.reshape(-1, 4)[:3]
-            x = at_time(args.at)
-            jobs = [(int(round(x)), x, torch.as_tensor(pose, dtype=torch.float32))]
+            jobs = [(at_time(args.at), pose)]
         shift = None
         if args.shift:
-            shift = torch.tensor([float(v) for v in args.shift.split(",")], dtype=torch.float32)
+            shift = np.array([float(v) for v in args.shift.split(",")])
             if shift.shape != (3,):
                 raise ValueError("--shift needs three numbers X,Y,Z")
+        cams = torch.as_tensor(scene.world_from_camera(), dtype=torch.float32)  # [T, 4, 4]
         images = []
-        with torch.no_grad():
-            for frame, x, cam in jobs:
-                lo, hi = int(np.floor(x)), min(int(np.floor(x)) + 1, n - 1)
-                if cam is None:
-                    cam = interpolate_pose(cams[lo], cams[hi], x - lo) if hi != lo else cams[lo]
-                cam = cam.clone()
-                if shift is not None:
-                    cam[:3, 3] += cam[:3, :3] @ shift
-                out = graph.render(frame, world_from_camera=cam)
-                images.append(_image(out, args.what, graph, frame, cam, None, None))
+        for t_us, cam in jobs:
+            x = scene.frame_at(t_us)
+            lo = int(np.floor(x))
+            hi = min(lo + 1, n - 1)
+            if cam is None:
+                cam = (interpolate_pose(cams[lo], cams[hi], x - lo) if hi != lo else cams[lo]).numpy()
+            cam = np.array(cam, np.float64)
+            if shift is not None:
+                cam[:3, 3] += cam[:3, :3] @ shift
+            K = scene.K[min(lo, len(scene.K) - 1)]  # noqa: N806
+            res = scene.render(t_us, cam, K, scene.width, scene.height, outputs=(output,))
+            images.append(_image(res, args.what))
         _write(Path(args.output), images, args.fps)
-    except (ValueError, OSError) as exc:
+    except (ValueError, OSError, SceneNotReady, SceneUnreadable) as exc:
         print(f"agg render: error: {exc}", file=sys.stderr)
         return 2
     print(f"wrote {args.output} ({len(images)} frame{'s' if len(images) > 1 else ''})")

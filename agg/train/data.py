@@ -11,6 +11,7 @@ from torch import Tensor
 
 from agg.eval.interpolate import split_frames
 from agg.io.bundle import SceneBundle
+from agg.io.video import scale_intrinsics
 from agg.train.semantic import attention_maps
 
 
@@ -49,21 +50,12 @@ def resize_images(frames: np.ndarray, width: int, height: int) -> Tensor:
     return x.permute(0, 2, 3, 1).contiguous()
 
 
-def scale_intrinsics(K: np.ndarray, sx: float, sy: float) -> Tensor:  # noqa: N803
-    """[T, 3, 3] pixel intrinsics for an image resized by (sx, sy) (OpenCV pixel centres)."""
-    k = torch.as_tensor(np.asarray(K, np.float64)).clone()
-    k[:, 0, 0] *= sx
-    k[:, 1, 1] *= sy
-    k[:, 0, 2] = (k[:, 0, 2] + 0.5) * sx - 0.5
-    k[:, 1, 2] = (k[:, 1, 2] + 0.5) * sy - 0.5
-    return k.float()
-
-
 def load_train_data(bundle: SceneBundle, max_width: int, attention_norm: str = "global",
                     eval_every: int = 5) -> TrainData:
     w, h, _ = training_size(bundle.width, bundle.height, max_width)
     images = resize_images(bundle.frames[:], w, h)
-    K = scale_intrinsics(bundle.intrinsics, w / bundle.width, h / bundle.height)  # noqa: N806
+    K = torch.as_tensor(np.stack([scale_intrinsics(k, (bundle.width, bundle.height), (w, h))  # noqa: N806
+                                  for k in bundle.intrinsics]), dtype=torch.float32)  # [T, 3, 3]
     m_bg = m_ag = None
     sem = bundle.semantics
     if sem is not None:

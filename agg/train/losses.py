@@ -10,7 +10,6 @@ where |.|_1 sums over the colour channels (as written in the paper). The total l
 
 from __future__ import annotations
 
-import torch
 from kornia.metrics import ssim as kornia_ssim
 from torch import Tensor
 
@@ -33,8 +32,3 @@ def semantic_attention_loss(pred: Tensor, gt: Tensor, attention: Tensor, lambda_
     """Eq. 3: the attention-weighted L1 error. pred, gt [H, W, 3]; attention [H, W] (M_bg or M_ag), >= 0."""
     err = (pred - gt).abs().sum(-1)  # [H, W]
     return lambda_sem * (attention * err).sum() / (attention.sum() + delta)
-
-
-def psnr(pred: Tensor, gt: Tensor) -> float:
-    mse = float(((pred.detach() - gt) ** 2).mean())
-    return float("inf") if mse == 0 else -10.0 * torch.log10(torch.tensor(mse)).item()

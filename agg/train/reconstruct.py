@@ -149,7 +149,10 @@ def reconstruct(input_path: str | Path, scene_dir: str | Path, preset: str | Tra
                "seconds_train": round(t_train, 2), "initial": initial, "n_gaussians": graph.num_gaussians(),
                "n_agents": graph.num_agents, "nodes": _node_names(graph), "agents_spawned": trainer.spawned,
                "agents_pruned": trainer.pruned, "final_train_psnr": _recent_psnr(trainer.history)}
-    _export(graph, bundle, scene_dir, meta)
+    from agg.export import export_scene
+
+    export_scene(graph, scene_dir / "scene.ply", scene_dir / "graph.json", bundle.timestamps_us,
+                 meta={"preset": meta["preset"]})
     if evaluate:
         if progress is not None:
             progress({"stage": "eval", "phase": "eval"})
@@ -171,16 +174,6 @@ def _node_names(graph: SceneGraph) -> list[str]:
 def _recent_psnr(history: list[dict], n: int = 50) -> float | None:
     vals = [r["psnr"] for r in history[-n:] if np.isfinite(r["psnr"])]
     return float(np.mean(vals)) if vals else None
-
-
-def _export(graph: SceneGraph, bundle: SceneBundle, scene_dir: Path, meta: dict) -> None:
-    from agg.export.graph_json import scene_graph_json
-    from agg.export.ply import export_graph_ply
-
-    with torch.no_grad():
-        export_graph_ply(graph, scene_dir / "scene.ply", frame=0)
-        doc = scene_graph_json(graph, bundle.timestamps_us, meta={"preset": meta["preset"]})
-    (scene_dir / "graph.json").write_text(json.dumps(doc))
 
 
 __all__ = ["reconstruct", "prepare_bundle", "with_gt_poses", "Cancelled"]

@@ -24,7 +24,8 @@ from agg.io.bundle import SceneBundle
 from agg.train.config import TrainConfig
 from agg.train.data import TrainData
 from agg.train.densify import DensifyConfig, Densifier
-from agg.train.losses import photometric_loss, psnr, semantic_attention_loss
+from agg.eval.metrics import psnr
+from agg.train.losses import photometric_loss, semantic_attention_loss
 from agg.train.tick_tock import GROUPS, TickTockSchedule, set_trainable
 
 
@@ -185,7 +186,7 @@ class Trainer:
         return loss, sem, out
 
     def step(self) -> dict:
-        cfg, g = self.cfg, self.graph
+        g = self.graph
         phase = self.schedule.phase(self.iteration)
         trainable = self.trainable_groups(phase)
         self.set_lrs(phase.lr_factor)
@@ -205,14 +206,15 @@ class Trainer:
         if self.topology is not None and self.topology.config.due(self.iteration):
             self._evolve()
         row = {"iteration": self.iteration, "frame": frame, "phase": phase.name, "loss": float(loss.detach()),
-               "sem": None if sem is None else float(sem.detach()), "psnr": psnr(out.color, self.data.images[frame])}
+               "sem": None if sem is None else float(sem.detach()),
+               "psnr": psnr(out.color.detach(), self.data.images[frame])}
         self.history.append(row)
         return row
 
     def _accumulate_2d(self, out, trainable: set) -> None:
         grad, radii, vis = out.meta.means2d.grad, out.meta.radii, out.meta.visible
         for key, sl in self.graph.node_slices().items():
-            group = "static" if key in ("background", "sky") else "agents"
+            group = _group_of(key)
             if sl.stop > sl.start and group in trainable:
                 self.densifier.accumulate(key, grad[sl], radii[sl], vis[sl], self.data.width, self.data.height)
 
@@ -224,7 +226,7 @@ class Trainer:
         g = self.graph
         changed = False
         for key, params in g.gaussian_sets().items():
-            group = "static" if key in ("background", "sky") else "agents"
+            group = _group_of(key)
             if group not in trainable or key == "sky":  # the far field is neither split nor size-pruned: its
                 continue  # Gaussians are large by design (and would all go under max_screen_fraction)
             opt = self.optimizers.get(group)
@@ -326,6 +328,11 @@ class Trainer:
         if trainer.topology is not None and state["topology"] is not None:
             trainer.topology.load_state_dict(state["topology"])
         return trainer
+
+
+def _group_of(key: str) -> str:
+    """The optimiser group of a Gaussian set of ``SceneGraph.gaussian_sets`` / ``node_slices``."""
+    return "static" if key in ("background", "sky") else "agents"
 
 
 def seed_everything(seed: int) -> None:
