@@ -13,6 +13,7 @@ import subprocess
 import sys
 import threading
 import time
+from fractions import Fraction
 from pathlib import Path
 
 import httpx
@@ -140,3 +141,22 @@ def upload(client: httpx.Client, data: bytes | None = None, preset: str = "tiny"
            **fields) -> httpx.Response:
     files = {"video": (filename, SAMPLE.read_bytes() if data is None else data, "video/mp4")}
     return client.post("/v1/jobs", files=files, data={"preset": preset, **fields})
+
+
+def small_clip(path: Path, frames: int = 8, width: int = 320) -> Path:
+    """The first ``frames`` frames of the sample clip at ``width`` px (H.264): a real, quick upload."""
+    import av
+    import numpy as np
+
+    from agg.io.video import IngestConfig, read_video
+
+    res = read_video(SAMPLE, IngestConfig(width=width, dtype="uint8", max_frames=frames))
+    with av.open(str(path), "w") as c:
+        s = c.add_stream("libx264" if "libx264" in av.codecs_available else "mpeg4", rate=Fraction(25))
+        s.width, s.height, s.pix_fmt = res.size[0], res.size[1], "yuv420p"
+        for f in res.frames:
+            for p in s.encode(av.VideoFrame.from_ndarray(np.ascontiguousarray(f), format="rgb24")):
+                c.mux(p)
+        for p in s.encode(None):
+            c.mux(p)
+    return path

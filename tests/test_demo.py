@@ -13,34 +13,16 @@ import signal
 import subprocess
 import sys
 import time
-from fractions import Fraction
 from pathlib import Path
 
 import numpy as np
 import pytest
 from PIL import Image
 
+from tests.service_helpers import small_clip
+
 ROOT = Path(__file__).resolve().parents[1]
-SAMPLE = ROOT / "samples" / "dashcam.mp4"
 CALIBRATION = ROOT / "samples" / "dashcam_intrinsics.yml"
-
-
-def small_clip(path: Path, frames: int = 8, width: int = 320) -> Path:
-    """The first ``frames`` frames of the sample clip at ``width`` px (H.264): a real, quick upload."""
-    import av
-
-    from agg.io.video import IngestConfig, read_video
-
-    res = read_video(SAMPLE, IngestConfig(width=width, dtype="uint8", max_frames=frames))
-    with av.open(str(path), "w") as c:
-        s = c.add_stream("libx264" if "libx264" in av.codecs_available else "mpeg4", rate=Fraction(25))
-        s.width, s.height, s.pix_fmt = res.size[0], res.size[1], "yuv420p"
-        for f in res.frames:
-            for p in s.encode(av.VideoFrame.from_ndarray(np.ascontiguousarray(f), format="rgb24")):
-                c.mux(p)
-        for p in s.encode(None):
-            c.mux(p)
-    return path
 
 
 def service_processes(data_dir: Path) -> list[int]:

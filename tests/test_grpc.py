@@ -207,7 +207,7 @@ def test_every_bad_input_gets_its_status_code(world):
 
 
 def test_renders_follow_the_latest_checkpoint(world):
-    render, graph, b = world["render"], world["graph"], world["bundle"]
+    render, graph = world["render"], world["graph"]
     folder = world["scenes"] / "sTrain"
     req = _request(world, rgb_encoding=cpb.IMAGE_ENCODING_RAW)
     req.scene_id = "sTrain"

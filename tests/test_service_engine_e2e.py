@@ -8,14 +8,13 @@ from __future__ import annotations
 import io
 import json
 import threading
-from fractions import Fraction
 
 import numpy as np
 import pytest
 
 from service.jobstore import JobStore
 from tests.redis_server import redis_proc  # noqa: F401 - fixture
-from tests.service_helpers import SAMPLE, LiveServer, kill_tree, service_config, start_worker, stop_worker, wait_for
+from tests.service_helpers import LiveServer, kill_tree, service_config, small_clip, start_worker, stop_worker, wait_for
 
 train = pytest.importorskip("agg.train")
 if not hasattr(train, "reconstruct"):
@@ -24,24 +23,6 @@ pytest.importorskip("agg.scene")
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(420)]
 REAL = {"AGG_ENGINE": "agg.train:reconstruct", "AGG_WRITE_PREVIEW": "1"}
-
-
-def small_clip(path, frames: int = 10, width: int = 320) -> bytes:
-    """The first frames of samples/dashcam.mp4 at 320x180, H.264 (a real, smaller upload)."""
-    import av
-
-    from agg.io.video import IngestConfig, read_video
-
-    res = read_video(SAMPLE, IngestConfig(width=width, dtype="uint8", max_frames=frames))
-    with av.open(str(path), "w") as c:
-        s = c.add_stream("libx264" if "libx264" in av.codecs_available else "mpeg4", rate=Fraction(25))
-        s.width, s.height, s.pix_fmt = res.size[0], res.size[1], "yuv420p"
-        for f in res.frames:
-            for p in s.encode(av.VideoFrame.from_ndarray(np.ascontiguousarray(f), format="rgb24")):
-                c.mux(p)
-        for p in s.encode(None):
-            c.mux(p)
-    return path.read_bytes()
 
 
 def psnr(a: np.ndarray, b: np.ndarray) -> float:
@@ -61,7 +42,7 @@ def test_real_engine_upload_progress_kill_resume_render(redis_proc, tmp_path):  
     events: list[dict] = []
     try:
         with srv.client("alice") as c:
-            r = c.post("/v1/jobs", files={"video": ("clip.mp4", small_clip(tmp_path / "clip.mp4"))},
+            r = c.post("/v1/jobs", files={"video": ("clip.mp4", small_clip(tmp_path / "clip.mp4", 10).read_bytes())},
                        data={"preset": "tiny", "max_frames": "8"})
             assert r.status_code == 202, r.text
             jid, scene = r.json()["job_id"], r.json()["scene_id"]
