@@ -83,65 +83,50 @@ def topology_scores(scene_dir: Path, bundle_path: Path) -> dict:
     return out
 
 
-def run_synth(args) -> None:
+def _run(args, name: str, input_path, preset: str, row: dict, **kwargs) -> dict | None:
+    """Reconstruct ``input_path`` into work/scenes/NAME and record work/runs/NAME.json (``row`` plus wall time,
+    metrics and summary); None when that record exists and ``--force`` is off."""
     from agg.train import reconstruct
 
     work = Path(args.work)
+    out = work / "runs" / f"{name}.json"
+    if out.is_file() and not args.force:
+        return None
+    t0 = time.perf_counter()
+    summary = reconstruct(input_path, work / "scenes" / name, preset, resume=False, **kwargs)
+    row = {**row, "preset": preset, "wall_s": round(time.perf_counter() - t0, 1), "metrics": summary.get("metrics"),
+           "summary": summary}
+    if row["kind"] == "synth":
+        row["topology"] = topology_scores(work / "scenes" / name, input_path)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(row, indent=1))
+    print(name, f"{row['wall_s']} s", "PSNR", row["metrics"]["psnr"], "agents", row["metrics"]["psnr_agents"],
+          flush=True)
+    return row
+
+
+def run_synth(args) -> None:
     for seed in [int(s) for s in args.seeds.split(",")]:
         for noise in [float(n) for n in args.noise.split(",")]:
             for variant in args.variants.split(","):
-                out = work / "runs" / f"synth_s{seed}_n{noise:g}_{variant}_{args.preset}.json"
-                if out.is_file() and not args.force:
-                    continue
-                bundle = synth_bundle(work, seed, noise, args.frames, args.width, args.height)
-                scene = work / "scenes" / out.stem
-                t0 = time.perf_counter()
-                summary = reconstruct(bundle, scene, args.preset, ablate=VARIANTS[variant], resume=False)
-                row = {"kind": "synth", "seed": seed, "noise": noise, "variant": variant, "preset": args.preset,
-                       "wall_s": round(time.perf_counter() - t0, 1), "metrics": summary.get("metrics"),
-                       "summary": summary, "topology": topology_scores(scene, bundle)}
-                out.parent.mkdir(parents=True, exist_ok=True)
-                out.write_text(json.dumps(row, indent=1))
-                m = row["metrics"]
-                print(f"seed {seed} noise {noise:g} {variant:13s} PSNR {m['psnr']:.2f} agents "
-                      f"{m['psnr_agents']} ({row['wall_s']} s) topo {row['topology']['missed_match']}",
-                      flush=True)
+                bundle = synth_bundle(Path(args.work), seed, noise, args.frames, args.width, args.height)
+                row = _run(args, f"synth_s{seed}_n{noise:g}_{variant}_{args.preset}", bundle, args.preset,
+                           {"kind": "synth", "seed": seed, "noise": noise, "variant": variant},
+                           ablate=VARIANTS[variant])
+                if row is not None:
+                    print("  topology:", row["topology"]["missed_match"], flush=True)
 
 
 def run_kitti(args) -> None:
-    from agg.train import reconstruct
-
-    work = Path(args.work)
     for gt in (False, True):
-        name = f"kitti_{args.preset}_{'gt' if gt else 'est'}"
-        out = work / "runs" / f"{name}.json"
-        if out.is_file() and not args.force:
-            continue
-        t0 = time.perf_counter()
-        summary = reconstruct(args.data, work / "scenes" / name, args.preset, gt_poses=gt, resume=False)
-        row = {"kind": "kitti", "gt_poses": gt, "preset": args.preset, "wall_s": round(time.perf_counter() - t0, 1),
-               "metrics": summary.get("metrics"), "summary": summary}
-        out.parent.mkdir(parents=True, exist_ok=True)
-        out.write_text(json.dumps(row, indent=1))
-        print(name, row["wall_s"], "s", row["metrics"]["psnr"], flush=True)
+        _run(args, f"kitti_{args.preset}_{'gt' if gt else 'est'}", args.data, args.preset,
+             {"kind": "kitti", "gt_poses": gt}, gt_poses=gt)
 
 
 def run_presets(args) -> None:
-    from agg.train import reconstruct
-
-    work = Path(args.work)
     for preset in args.presets.split(","):
-        out = work / "runs" / f"preset_{preset}_s{args.seed}.json"
-        if out.is_file() and not args.force:
-            continue
-        bundle = synth_bundle(work, args.seed, 0.5, args.frames, args.width, args.height)
-        t0 = time.perf_counter()
-        summary = reconstruct(bundle, work / "scenes" / out.stem, preset, resume=False)
-        row = {"kind": "preset", "preset": preset, "seed": args.seed, "wall_s": round(time.perf_counter() - t0, 1),
-               "metrics": summary.get("metrics"), "summary": summary}
-        out.parent.mkdir(parents=True, exist_ok=True)
-        out.write_text(json.dumps(row, indent=1))
-        print(preset, row["wall_s"], "s", row["metrics"]["psnr"], flush=True)
+        bundle = synth_bundle(Path(args.work), args.seed, 0.5, args.frames, args.width, args.height)
+        _run(args, f"preset_{preset}_s{args.seed}", bundle, preset, {"kind": "preset", "seed": args.seed})
 
 
 def main(argv=None) -> int:
