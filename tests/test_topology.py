@@ -79,7 +79,7 @@ def test_a_missed_moving_car_is_spawned_on_its_trajectory(missed):
     assert valid.mean() >= 0.8
     # its Gaussians left the background (the report's keep mask says which rows), the optimiser follows
     moved = int((graph.rigid.instance == j).sum())
-    assert moved >= 100 and len(graph.background) == n_bg - moved == int(report["bg_keep"].sum())
+    assert moved >= 100 and len(graph.background) == n_bg - moved == len(report["bg_src"])
     assert opt.state[graph.background.means]["exp_avg"].shape[0] == len(graph.background)
     assert topo.sum is None  # statistics reset after an evolution
     # the new agent renders where the car is: its Gaussians cover the missed car's pixels in a middle frame
@@ -117,6 +117,43 @@ def test_a_dead_false_agent_is_pruned(tmp_path):
     assert topo.next_track_id(graph) > max(ids_before)
 
 
+def test_a_live_false_agent_on_the_road_is_demoted_to_background(tmp_path):
+    """A planted false car keeps its road Gaussians opaque (nothing dies out), but it is static and reads road
+    features: it leaves the graph, its Gaussians join the background where they render the same pixels, and
+    every real agent (moving cars, parked cars) stays."""
+    bundle, graph = _clip(tmp_path / "live", SceneConfig(seed=1, frames=6, width=128, height=80, pedestrians=0),
+                          NoiseConfig(false=1), budget=3000)
+    index = load_gt_extras(tmp_path / "live")["index"]
+    false_id = index["false_ids"][0]
+    ids_before = graph.rigid.track_ids.tolist()
+    k = ids_before.index(false_id)
+    mine = graph.rigid.instance == k
+    assert int(mine.sum()) > 20 and float(torch.sigmoid(graph.rigid.gaussians.opacity_logits[mine]).min()) > 0.05
+    frame = int(np.flatnonzero(graph.rigid.valid[:, k].numpy())[0])
+    with torch.no_grad():
+        before = graph.render(frame).color
+    n_bg, n_false = len(graph.background), int(mine.sum())
+    report = _topology(bundle).evolve(graph, None)
+    assert report["demoted"] == [false_id] and report["pruned"] == [false_id] and report["structure_changed"]
+    assert graph.rigid.track_ids.tolist() == [i for i in ids_before if i != false_id]  # real agents all stay
+    assert len(graph.background) == n_bg + n_false
+    assert (report["bg_src"][n_bg:] == -1).all() and (report["bg_src"][:n_bg] == torch.arange(n_bg)).all()
+    with torch.no_grad():  # the road it rendered is still rendered (same Gaussians, now in the background)
+        after = graph.render(frame).color
+    assert float((after - before).abs().max()) < 1e-4
+
+
+def test_demotion_needs_a_static_agent():
+    from agg.train.topology_demote import static_instances
+
+    t = np.arange(10.0)
+    centres = np.stack([np.stack([0 * t, 0 * t, 0.05 * t], 1), np.stack([0 * t, 0 * t, 0.5 * t], 1)], 1)  # [T, 2, 3]
+    valid = np.ones((10, 2), bool)
+    assert static_instances(centres, valid, 1.0).tolist() == [True, False]
+    valid[:, 0] = False
+    assert static_instances(centres, valid, 1.0).tolist() == [False, False]  # no valid frame: nothing to judge
+
+
 def test_background_gaussians_inside_an_agent_box_are_reassigned(tmp_path):
     bundle, graph = _clip(tmp_path / "exact", SceneConfig(seed=2, frames=4, width=96, height=64, pedestrians=0),
                           NoiseConfig(), budget=2000)
@@ -148,7 +185,7 @@ def test_background_gaussians_inside_an_agent_box_are_reassigned(tmp_path):
     assert report["reassigned"] >= 0.9 * len(planted), (report["reassigned"], len(planted))
     assert len(graph.background) == n_bg + len(planted) - report["reassigned"]
     assert len(rigid.gaussians) == n_agent + report["reassigned"]
-    assert not report["bg_keep"][:n_bg].logical_not().any()  # no original background row moved
+    assert set(range(n_bg)) <= set(report["bg_src"].tolist())  # no original background row moved
     new = rigid.gaussians.means.detach()[n_agent:]
     assert (rigid.instance[n_agent:] == k).all()
     # in the canonical frame they land back on the instance's own Gaussians

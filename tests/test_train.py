@@ -124,3 +124,25 @@ def test_training_frames_are_the_bundles_frames_at_the_training_size(bundle):
     full = full / 255.0 if full.max() > 1.5 else full
     assert abs(float(data.images.mean()) - float(full.mean())) < 2e-3 and float(data.images.max()) > 0.5
     torch.testing.assert_close(data.K[0, 0, 0], torch.tensor(float(bundle.intrinsics[0][0, 0]) / 2))
+
+
+def test_a_background_over_its_budget_after_evolution_drops_its_least_opaque_rows(bundle):
+    """Demotion hands an agent's Gaussians to the background; a full background then drops its least opaque rows,
+    and the optimiser and the densifier's statistics follow."""
+    from agg.nodes.gaussians import GaussianParams, append_rows
+
+    tr = _trainer(bundle)
+    bg = tr.graph.background
+    n = len(bg)
+    tr.cfg = replace(tr.cfg, max_gaussians=n)
+    extra = GaussianParams(torch.zeros(7, 3), torch.full((7, 3), -3.0), torch.tensor([[1.0, 0, 0, 0]]).repeat(7, 1),
+                           torch.full((7,), 20.0), torch.zeros((7, *bg.sh.shape[1:])))
+    append_rows(bg, extra, tr.optimizers["static"])
+    with torch.no_grad():
+        bg.opacity_logits[:7] = -30.0  # the seven least opaque rows (7 over the budget)
+    kept = bg.means.detach()[7:].clone()
+    tr._fit_budget()
+    assert len(bg) == n and torch.equal(bg.means.detach(), kept)
+    loss = tr.graph.render(0).color.mean()  # one optimiser step on the resized rows works
+    loss.backward()
+    tr.optimizers["static"].step()

@@ -20,8 +20,12 @@ Distributions (all i.i.d. over the entries they name):
 - False agents (``false`` = k): k static boxes that exist nowhere in the scene, alternating rigid (car-sized) and
   non-rigid (pedestrian-sized), placed on the road (|x| <= 5 m of the road centre line) 8 to 35 m ahead of the last
   camera, heading along the road. Their bird's-eye footprint circles keep a 0.5 m gap to every real agent at every
-  frame and to each other. Their tracklets are valid in the frames where they would be seen (their silhouette,
-  depth-tested against the real scene, covers >= 1 pixel); the silhouette is added to the dynamic masks.
+  frame and to each other. A false box stands for a detector's false positive, which fires on something it sees:
+  it is placed only where its silhouette, depth-tested against the real scene, covers at least
+  ``FALSE_MIN_PIXELS`` of the image (0.2 %: 123 pixels at 320 x 192) in at least ``FALSE_MIN_FRAMES`` frames (a
+  box hidden behind a real car, seen on a few pixels, is no detection anyone would make). Their tracklets are
+  valid in the frames where they would be seen (silhouette >= 1 pixel); the silhouette is added to the dynamic
+  masks.
 - Depth (``depth_rel_sigma`` = s, ``depth_keep_fraction`` = f): every valid pixel gets ``d' = d * max(1 + s * n,
   0.05)``, ``n ~ N(0, 1)`` (so std(d'/d - 1) = s; the clip only matters for s > 0.3); then exactly
   ``round(f * n_valid)`` valid pixels per frame, drawn uniformly without replacement, are kept and the rest set to
@@ -86,6 +90,8 @@ NOISE_PRESETS: dict[str, NoiseConfig] = {
                         feature_sigma=0.05),
 }
 
+FALSE_MIN_PIXELS = 0.002  # fraction of the image a false box covers ...
+FALSE_MIN_FRAMES = 3  # ... in at least this many frames
 _KNOB = {"cam_t": 1, "cam_r": 2, "agent": 3, "false": 4, "depth": 5, "feature": 6}
 
 
@@ -205,7 +211,8 @@ def false_agents(gt, cfg: NoiseConfig) -> tuple[np.ndarray, list[str], np.ndarra
             if any(np.linalg.norm(b[[0, 2]] - box[[0, 2]]) < _footprint_radius(b[3:5]) + r + 0.5 for b in boxes):
                 continue
             sil = silhouettes(gt, box)
-            if sil.any():
+            seen = sil.sum((1, 2)) >= max(1.0, FALSE_MIN_PIXELS * sil[0].size)  # [T]
+            if seen.sum() >= min(FALSE_MIN_FRAMES, len(sil)):
                 break
         else:
             raise NoiseConfigError(f"could not place false agent {i + 1} of {cfg.false} in free, visible space")

@@ -38,7 +38,9 @@ pose prior is the track, its centroids moved from the visible surface to the box
 (``topology_track.spawn_trajectory``: a box of the graph's median agent size or ``rigid_size_m``, yaw from the
 ground velocity); its track id is one more than every id seen so far (never reused).
 **Pruning**: an instance whose ``prune_quantile`` opacity quantile is below ``prune_opacity`` or that has fewer
-than ``min_agent_gaussians`` Gaussians is removed (before matching, so dead agents absorb nothing).
+than ``min_agent_gaussians`` Gaussians is removed (before matching, so dead agents absorb nothing). A false agent
+that does not die out (it keeps rendering the road it was initialised on) is **demoted** when it is static and not
+agent-like (``topology_demote``): its Gaussians move to the background and its id is reported as pruned.
 """
 
 from __future__ import annotations
@@ -52,7 +54,9 @@ from torch import Tensor
 
 from agg.nodes.gaussians import PARAM_NAMES, GaussianParams, append_rows, keep_rows
 from agg.nodes.rigid import RigidAgents, matrix_to_quat, quat_multiply
+from agg.train import topology_demote as td
 from agg.train import topology_track as tt
+from agg.train.topology_demote import DemoteConfig
 
 
 @dataclass(frozen=True)
@@ -77,10 +81,12 @@ class TopologyConfig:
     track_max_missed: int = 1  # frames a track may coast without a cluster
     smooth_accel_sigma_m: float = 0.05  # Kalman: acceleration std of the final (RTS) trajectory of a spawned agent
     extend_frames: int = 2  # spawned validity extends this many frames past the track while the box is in view
+    extend_agent_fraction: float = 0.5  # ... and further while agent-like features are where its box would be
     min_speed_m: float = 0.05  # per frame: slower tracks take their yaw from the cluster's ground principal axis
     rigid_size_m: tuple[float, float, float] = (4.5, 1.8, 1.6)  # (l, w, h) of a spawned agent when the graph
     nonrigid_size_m: tuple[float, float, float] = (0.7, 0.7, 1.75)  # has no instance of its class to copy
     reset_after_evolve: bool = True  # start the gradient statistics afresh after each evolution
+    demote: DemoteConfig = DemoteConfig()  # static, not agent-like instances become background (topology_demote)
 
     def scaled(self, factor: float) -> "TopologyConfig":
         """The same settings with the iteration milestones scaled (a preset with fewer iterations)."""
@@ -126,7 +132,8 @@ class TopologyEvolution:
     spawned agent (e.g. every bundle tracklet id); num_frames: T (default: the features' or intrinsics' T)."""
 
     def __init__(self, config: TopologyConfig, semantics, intrinsics, width: int, height: int, scale: float = 1.0,
-                 depth: np.ndarray | None = None, reserved_ids=(), num_frames: int | None = None):
+                 depth: np.ndarray | None = None, reserved_ids=(), num_frames: int | None = None,
+                 dynamic: np.ndarray | None = None):
         self.config = config
         self.semantics = semantics
         self.bank = tt.prototype_bank(semantics)
@@ -136,6 +143,7 @@ class TopologyEvolution:
             raise ValueError(f"scale must be positive, got {scale}")
         self.unit = 1.0 / float(scale)  # scene units per metre
         self.depth = depth
+        self.dynamic = None if dynamic is None else np.asarray(dynamic, bool)  # [T, H, W] prior dynamic masks
         if num_frames is None:
             num_frames = semantics.features.shape[0] if semantics is not None else len(self.K)
         self.num_frames = int(num_frames)
@@ -233,6 +241,37 @@ class TopologyEvolution:
                 nodes.add(name)
         return pruned, nodes
 
+    def _demote(self, graph, optimizer) -> tuple[list[int], set[str], list[GaussianParams]]:
+        """Remove the static instances that do not look like agents (``topology_demote``); returns their track
+        ids, the nodes that changed and their Gaussians in world coordinates (for the background)."""
+        cfg, dc = self.config, self.config.demote
+        if not dc.enabled or self.bank is None:
+            return [], set(), []
+        with torch.no_grad():
+            cfw = graph.camera.camera_from_world().detach().cpu().numpy().astype(np.float64)  # [T, 4, 4]
+        demoted, nodes, rows = [], set(), []
+        for name in ("rigid", "nonrigid"):
+            node = getattr(graph, name, None)
+            if node is None or node.num_instances == 0:
+                continue
+            valid = node.valid.cpu().numpy()  # [T, K]
+            keep = np.ones(node.num_instances, bool)
+            for k in np.flatnonzero(td.static_instances(td.centres(node), valid, dc.static_m * self.unit)):
+                frames = np.flatnonzero(valid[:, k])
+                frac, n = td.agent_like_fraction(
+                    td.world_means_at(node, int(k), frames.tolist()), cfw[frames],
+                    self.K[np.minimum(frames, len(self.K) - 1)], self.semantics.features[frames], self.bank,
+                    cfg.tau_sem, self.width, self.height, cfg.near_m * self.unit,
+                    None if self.depth is None else self.depth[frames], cfg.surface_tolerance, dc.min_cells)
+                if n > 0 and frac < dc.agent_fraction:
+                    keep[k] = False
+                    rows.append(td.world_rows(node, int(k), int(frames[len(frames) // 2])))
+            if not keep.all():
+                demoted += [int(i) for i in node.track_ids.cpu().numpy()[~keep]]
+                node.remove_instances(torch.as_tensor(keep), optimizer)
+                nodes.add(name)
+        return demoted, nodes, rows
+
     def _spawn_half(self, graph, cls: str) -> np.ndarray:
         """Box-frame half extents (x = l, y = h, z = w) assumed for a new agent of class ``cls``: the median of
         the graph's instances of that class (their canonical extents), else the configured metric size."""
@@ -255,20 +294,29 @@ class TopologyEvolution:
 
     def evolve(self, graph, optimizer=None, iteration: int | None = None) -> dict:
         """Run Algorithm 1 on ``graph`` (in place; the optimiser's rows follow). Returns the report:
-        reassigned (Gaussians moved to existing agents), spawned / pruned (track ids), candidates / clusters
-        (summed over frames), structure_changed (agent instances added or removed, or a node created: rebuild
-        the optimiser's parameter groups), new_nodes (names of created nodes), rows_changed (nodes whose Gaussian
-        rows changed), bg_keep ([N_bg] bool, the background rows kept, on the background's device)."""
+        reassigned (Gaussians moved to existing agents), spawned / pruned (track ids; pruned includes the
+        demoted), demoted (track ids whose Gaussians went to the background), candidates / clusters (summed over
+        frames), structure_changed (agent instances added or removed, or a node created: rebuild the optimiser's
+        parameter groups), new_nodes (names of created nodes), rows_changed (nodes whose Gaussian rows changed),
+        bg_src ([N_bg'] long: new background row i came from old row bg_src[i], -1 for a demoted agent's)."""
         cfg = self.config
         self.evolutions += 1
         pruned, pruned_nodes = self._prune(graph, optimizer)
-        self.retired |= set(pruned)
+        demoted, demoted_nodes, rows = self._demote(graph, optimizer)
+        self.retired |= set(pruned) | set(demoted)
         bg = graph.background
+        n_old = len(bg)
+        for extra in rows:
+            append_rows(bg, extra, optimizer)
         n_bg = len(bg)
-        report = {"iteration": iteration, "reassigned": 0, "spawned": [], "spawned_classes": [], "pruned": pruned,
-                  "candidates": 0, "clusters": 0, "tracks": 0, "structure_changed": bool(pruned), "new_nodes": [],
-                  "rows_changed": sorted(pruned_nodes),
-                  "bg_keep": torch.ones(n_bg, dtype=torch.bool, device=bg.means.device)}
+        if self.sum is not None and n_bg > n_old:
+            self.sum = torch.cat([self.sum, self.sum.new_zeros(self.sum.shape[0], n_bg - n_old)], 1)
+        src = torch.cat([torch.arange(n_old), torch.full((n_bg - n_old,), -1)]).to(bg.means.device)  # [N_bg]
+        changed = pruned_nodes | demoted_nodes | ({"background"} if n_bg > n_old else set())
+        report = {"iteration": iteration, "reassigned": 0, "spawned": [], "spawned_classes": [],
+                  "pruned": pruned + demoted, "demoted": demoted, "candidates": 0, "clusters": 0, "tracks": 0,
+                  "structure_changed": bool(pruned or demoted), "new_nodes": [], "rows_changed": sorted(changed),
+                  "bg_src": src}
         if self.sum is None or not bool((self.count > 0).any()):
             return self._finish(report)
         if self.sum.shape[1] != n_bg:
@@ -344,6 +392,20 @@ class TopologyEvolution:
             k = self.K[min(i, len(self.K) - 1)]
             return bool(tt.project(centre[None], cfw[i], k, self.width, self.height, cfg.near_m * u)[2][0])
 
+        def evidence_for(half: np.ndarray):
+            def evidence(i: int, centre: np.ndarray) -> bool:
+                """Agent-like features around the box centre's pixel (a square of the box's half height), off
+                the pixels the prior dynamic masks give to other agents."""
+                k = self.K[min(i, len(self.K) - 1)]
+                uv, z, vis = tt.project(centre[None], cfw[i], k, self.width, self.height, cfg.near_m * u)
+                if self.bank is None or not vis[0]:
+                    return False
+                frac = tt.region_agent_fraction(self.semantics.features[i], self.bank, cfg.tau_sem, uv[0],
+                                                k[0, 0] * half[1] / z[0], self.width, self.height,
+                                                None if self.dynamic is None else self.dynamic[i])
+                return frac >= cfg.extend_agent_fraction
+            return evidence
+
         for h in histories:
             run, _ = tt.longest_run(h.assoc >= 0)
             if run < cfg.tau_life:
@@ -357,10 +419,12 @@ class TopologyEvolution:
             fallback = tt.ground_axis_yaw(means[rows])
             nonrigid = float(np.mean([c["nonrigid"] for _, c in clusters]))
             cls = "non-rigid" if nonrigid > 0.5 else "rigid"
+            half = self._spawn_half(graph, cls)
             poses, valid = tt.spawn_trajectory(
-                h.state, {t: c["centre"] for t, c in clusters}, cam_centres, self._spawn_half(graph, cls), in_view,
+                h.state, {t: c["centre"] for t, c in clusters}, cam_centres, half, in_view,
                 fallback, meas_sigma=params.meas_sigma, accel_sigma=cfg.smooth_accel_sigma_m * u,
-                init_vel_sigma=params.init_vel_sigma, min_speed=cfg.min_speed_m * u, extend=cfg.extend_frames)
+                init_vel_sigma=params.init_vel_sigma, min_speed=cfg.min_speed_m * u, extend=cfg.extend_frames,
+                evidence=evidence_for(half))
             frame_of = tt.nearest_frame(means[rows], rows, [(t, c["members"]) for t, c in clusters], poses)
             claimed[rows] = True
             plans.append({"rows": rows, "frame_of": frame_of, "poses": poses, "valid": valid, "class": cls})
@@ -418,7 +482,7 @@ class TopologyEvolution:
             self.retired |= set(ids)
         report["structure_changed"] = bool(report["pruned"] or report["spawned"] or report["new_nodes"])
         report["rows_changed"] = sorted(rows_changed | set(report["rows_changed"]))
-        report["bg_keep"] = keep
+        report["bg_src"] = report["bg_src"][keep]
         return self._finish(report)
 
     def _finish(self, report: dict) -> dict:

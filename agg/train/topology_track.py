@@ -196,14 +196,39 @@ def ground_axis_yaw(points: np.ndarray) -> float:
     return yaw_from_heading(vt[0, 0], vt[0, 1])
 
 
+def region_agent_fraction(features: np.ndarray, bank: dict, tau_sem: float, uv: np.ndarray, radius: float,
+                          width: int, height: int, exclude: np.ndarray | None = None) -> float:
+    """Fraction of agent-like cells of a low-resolution feature map [h, w, C] in the square of half side
+    ``radius`` pixels around ``uv`` [2] (training-resolution pixels); cells whose centre falls on ``exclude``
+    [height, width] (e.g. the prior dynamic masks: pixels already explained by another agent) are skipped.
+    0 when no cell is left."""
+    h, w = features.shape[:2]
+    x0, x1 = np.clip(np.floor((uv[0] - radius) * w / width), 0, w - 1), np.clip(np.ceil((uv[0] + radius) * w / width), 0, w - 1)
+    y0, y1 = np.clip(np.floor((uv[1] - radius) * h / height), 0, h - 1), np.clip(np.ceil((uv[1] + radius) * h / height), 0, h - 1)
+    ys, xs = np.mgrid[int(y0):int(y1) + 1, int(x0):int(x1) + 1]  # cell indices
+    ys, xs = ys.ravel(), xs.ravel()
+    if exclude is not None:
+        px = np.clip(((xs + 0.5) * width / w).astype(np.int64), 0, width - 1)
+        py = np.clip(((ys + 0.5) * height / h).astype(np.int64), 0, height - 1)
+        free = ~np.asarray(exclude, bool)[py, px]
+        ys, xs = ys[free], xs[free]
+    if len(xs) == 0:
+        return 0.0
+    ag, _ = agent_like(np.asarray(features, np.float32)[ys, xs], bank, tau_sem)
+    return float(ag.mean())
+
+
 def trajectory_poses(state: np.ndarray, *, min_speed: float, extend: int,
-                     in_view, fallback_yaw: float) -> tuple[np.ndarray, np.ndarray]:
+                     in_view, fallback_yaw: float, evidence=None) -> tuple[np.ndarray, np.ndarray]:
     """Per-frame box poses from a smoothed track.
 
     state [T, 6] (x, y, z, vx, vy, vz per frame; NaN outside the track's first..last hit). Inside the track's
     life the centre is the smoothed position (coasted across gaps); up to ``extend`` frames before / after it the
     centre is extrapolated with the end velocity and the frame counts as valid while ``in_view(frame, centre)``
-    holds; beyond that the pose is held constant (invalid). The yaw follows the smoothed ground velocity (x, z)
+    holds. With ``evidence(frame, centre) -> bool`` the extrapolation goes on past ``extend`` frames for as long
+    as every frame is in view and shows evidence of the agent there (agent-like features where its box would
+    be: the clusters only saw the car where its background gradients stood out, the features see it wherever
+    it is visible). Beyond that the pose is held constant (invalid). The yaw follows the smoothed ground velocity (x, z)
     where the speed is at least ``min_speed`` per frame (directions opposing the median one are flipped: a noisy
     slow track must not turn around), is held from the nearest such frame elsewhere, and is ``fallback_yaw``
     when the track never moves that fast.
@@ -217,12 +242,15 @@ def trajectory_poses(state: np.ndarray, *, min_speed: float, extend: int,
     valid[first:last + 1] = True
     for direction, end in ((-1, first), (1, last)):
         v = state[end, 3:]
-        i, steps = end + direction, 1
+        i, steps, held = end + direction, 1, extend
         while 0 <= i < n:
-            c = state[end, :3] + v * direction * min(steps, extend)
-            centre[i] = c
-            if steps <= extend and in_view(i, c):
+            c = state[end, :3] + v * direction * steps
+            seen = in_view(i, c)
+            if steps <= extend and seen:
                 valid[i] = True
+            elif steps > extend and held == steps - 1 and seen and evidence is not None and evidence(i, c):
+                valid[i], held = True, steps
+            centre[i] = c if steps <= held else state[end, :3] + v * direction * held
             i, steps = i + direction, steps + 1
     speed = np.linalg.norm(state[:, [3, 5]], axis=1)  # [T], NaN outside life
     moving = np.flatnonzero(np.nan_to_num(speed) >= min_speed)
@@ -241,14 +269,15 @@ def trajectory_poses(state: np.ndarray, *, min_speed: float, extend: int,
 
 def spawn_trajectory(state: np.ndarray, centroids: dict[int, np.ndarray], camera_centres: np.ndarray,
                      half: np.ndarray, in_view, fallback_yaw: float, *, meas_sigma: float, accel_sigma: float,
-                     init_vel_sigma: float, min_speed: float, extend: int) -> tuple[np.ndarray, np.ndarray]:
+                     init_vel_sigma: float, min_speed: float, extend: int, evidence=None
+                     ) -> tuple[np.ndarray, np.ndarray]:
     """Pose prior of a spawned agent: world_from_box [T, 4, 4] and valid [T].
 
     ``state`` [T, 6] is the tracker's smoothed track of the cluster centroids ``centroids`` {frame: [3]}, which
     sample the agent's visible surface, not its centre. Each centroid is moved back to the centre of a box of
     half extents ``half`` (heading from the track, seen from ``camera_centres`` [T, 3]: ``box_centre_from_
     surface``), the corrected centres are RTS-smoothed again with the smaller ``accel_sigma`` (a steady
-    heading), and ``trajectory_poses`` turns the result into poses."""
+    heading), and ``trajectory_poses`` turns the result into poses (``evidence``: see there)."""
     poses, _ = trajectory_poses(state, min_speed=min_speed, extend=extend, in_view=in_view,
                                 fallback_yaw=fallback_yaw)
     z = np.full((len(state), 3), np.nan)
@@ -257,7 +286,8 @@ def spawn_trajectory(state: np.ndarray, centroids: dict[int, np.ndarray], camera
         z[t] = box_centre_from_surface(c, camera_centres[t], yaw, half)
     smooth, _ = smooth_sequence(z, np.tile(np.eye(3) * meas_sigma ** 2, (len(state), 1, 1)),
                                 accel_var=accel_sigma ** 2, init_vel_var=init_vel_sigma ** 2)
-    return trajectory_poses(smooth, min_speed=min_speed, extend=extend, in_view=in_view, fallback_yaw=fallback_yaw)
+    return trajectory_poses(smooth, min_speed=min_speed, extend=extend, in_view=in_view, fallback_yaw=fallback_yaw,
+                            evidence=evidence)
 
 
 def nearest_frame(points: np.ndarray, rows: np.ndarray, members: list[tuple[int, np.ndarray]],

@@ -20,6 +20,7 @@ import numpy as np
 import torch
 
 from agg.graph import SceneGraph
+from agg.nodes.gaussians import keep_rows
 from agg.io.bundle import SceneBundle
 from agg.train.config import TrainConfig
 from agg.train.data import TrainData
@@ -84,9 +85,11 @@ class Trainer:
 
         depth = resize_depth(b.dense_depth, self.data.width, self.data.height) if b.has("depth_dense") else None
         ids = [int(i) for i in b.tracklets.ids] if b.tracklets is not None else []
+        dynamic = (resize_depth(b.dynamic_masks, self.data.width, self.data.height) > 0.5
+                   if b.has("dynamic_masks") else None)
         return TopologyEvolution(TopologyConfig().scaled(self.cfg.scale), b.semantics, self.data.K.numpy(),
                                  self.data.width, self.data.height, b.scale,
-                                 depth=depth, reserved_ids=ids)
+                                 depth=depth, reserved_ids=ids, dynamic=dynamic)
 
     def _lr_scale(self) -> float:
         """Pose-rate factor 30000 / iterations, at most 15 (the balanced preset's): below ~2,000 iterations a
@@ -252,18 +255,35 @@ class Trainer:
         if n > self.cfg.max_gaussians:  # the densifier caps per set; keep the invariant visible
             raise RuntimeError(f"background has {n} Gaussians, over the budget {self.cfg.max_gaussians}")
 
+    def _fit_budget(self) -> None:
+        """A demoted agent's Gaussians may land in a full background: drop its least opaque rows to the budget."""
+        bg = self.graph.background
+        over = len(bg) - self.cfg.max_gaussians
+        if over <= 0:
+            return
+        opac = bg.opacity_logits.detach().reshape(len(bg), -1)[:, 0]  # [N]
+        keep = torch.ones(len(bg), dtype=torch.bool, device=opac.device)
+        keep[torch.topk(opac, over, largest=False).indices] = False
+        keep_rows(bg, keep, self.optimizers.get("static"))
+        src = torch.nonzero(keep).reshape(-1)
+        if self.densifier is not None:
+            self.densifier.remap("background", src)
+        if self.topology is not None:
+            self.topology.on_rows_changed(src)
+
     def _evolve(self) -> None:
         report = self.topology.evolve(self.graph, self.optimizers.get("static"), self.iteration)
         self.spawned += list(report.get("spawned", []))
         self.pruned += list(report.get("pruned", []))
         if self.densifier is not None:
-            keep = report.get("bg_keep")
-            if keep is not None:
-                self.densifier.remap("background", torch.nonzero(torch.as_tensor(keep)).reshape(-1))
+            src = report.get("bg_src")
+            if src is not None:
+                self.densifier.remap("background", src)
             for key in ("rigid", "nonrigid"):
                 self.densifier.forget(key)
+        self._fit_budget()
         self.build_optimizers()
-        self.emit(event="topology", report={k: v for k, v in report.items() if k != "bg_keep"})
+        self.emit(event="topology", report={k: v for k, v in report.items() if k != "bg_src"})
 
     # ------------------------------------------------------------------ loop, events, checkpoints
     def emit(self, **event) -> None:
