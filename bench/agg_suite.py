@@ -76,8 +76,9 @@ def topology_scores(scene_dir: Path, bundle_path: Path) -> dict:
                 d = np.linalg.norm(c - gt_c, axis=1)[valid]
                 frac = float((d <= 1.0).mean())
                 score = {"track_id": tid, "frames": int(valid.sum()), "visible_frames": int(vis.sum()),
-                         "within_1m": frac, "median_m": float(np.median(d))}
-                if best is None or frac > best["within_1m"]:
+                         "within_1m": frac, "within_1m_of_visible": float((d <= 1.0).sum() / vis.sum()),
+                         "median_m": float(np.median(d))}
+                if best is None or score["within_1m_of_visible"] > best["within_1m_of_visible"]:
                     best = score
     out["missed_match"] = best
     return out

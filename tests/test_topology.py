@@ -232,3 +232,21 @@ def test_visible_surface_offset_recovers_a_box_centre():
     # seen from the front-left and above: the centroid moves toward every visible face, never past the box
     off = visible_surface_offset(half, np.array([-0.6, 0.3, 0.74]) / np.linalg.norm([-0.6, 0.3, 0.74]))
     assert off[0] > 0 and off[1] < 0 and off[2] < 0 and np.all(np.abs(off) <= half)
+
+
+def test_a_spawned_trajectory_extends_while_the_features_see_the_agent():
+    """A track seen on frames 5..9 (1 m / frame along x) is extrapolated at its velocity: 2 frames on either side
+    while in view, and further for as long as every frame shows evidence of the agent; then held (invalid)."""
+    from agg.train.topology_track import trajectory_poses
+
+    t = np.arange(20.0)
+    state = np.full((20, 6), np.nan)
+    state[5:10] = np.stack([t[5:10], 0 * t[5:10], 10 + 0 * t[5:10], 1 + 0 * t[5:10], 0 * t[5:10], 0 * t[5:10]], 1)
+    kw = {"min_speed": 0.05, "extend": 2, "in_view": lambda i, c: True, "fallback_yaw": 0.0}
+    poses, valid = trajectory_poses(state, **kw)
+    assert np.flatnonzero(valid).tolist() == list(range(3, 12))
+    poses, valid = trajectory_poses(state, **kw, evidence=lambda i, c: 1 <= i <= 14 and i != 13)
+    assert np.flatnonzero(valid).tolist() == list(range(1, 13))  # the chain stops at the first frame without it
+    np.testing.assert_allclose(poses[:13, 0, 3], np.concatenate([[1.0], t[1:13]]))  # x = frame, linear
+    np.testing.assert_allclose(poses[13:, 0, 3], 12.0)  # held after the last valid frame
+    assert poses[0, 0, 3] == 1.0
