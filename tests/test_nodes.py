@@ -202,7 +202,8 @@ def test_spawning_two_agents_at_once_keeps_one_instance_index_per_gaussian():
               "valid": np.ones(t, bool), "frames": t, "class": "rigid"},
              {"rows": np.arange(7, 12), "frame_of": np.zeros(5, int), "poses": np.tile(np.eye(4), (t, 1, 1)),
               "valid": np.ones(t, bool), "frames": t, "class": "rigid"}]
-    report = {"pruned": [], "spawned": [], "new_nodes": [], "reassigned": 0, "rows_changed": []}
+    report = {"pruned": [], "spawned": [], "new_nodes": [], "reassigned": 0, "rows_changed": [],
+              "bg_src": torch.arange(30)}
     g = Graph()
     evo._apply(g, None, report, np.full((30, 2), -1), np.zeros(30, int), [], plans)
     assert len(node.instance) == len(node.gaussians) == 16

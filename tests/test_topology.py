@@ -128,7 +128,7 @@ def test_a_live_false_agent_on_the_road_is_demoted_to_background(tmp_path):
     ids_before = graph.rigid.track_ids.tolist()
     k = ids_before.index(false_id)
     mine = graph.rigid.instance == k
-    assert int(mine.sum()) > 20 and float(torch.sigmoid(graph.rigid.gaussians.opacity_logits[mine]).min()) > 0.05
+    assert int(mine.sum()) > 20 and float(torch.sigmoid(graph.rigid.gaussians.opacity_logits.detach()[mine]).min()) > 0.05
     frame = int(np.flatnonzero(graph.rigid.valid[:, k].numpy())[0])
     with torch.no_grad():
         before = graph.render(frame).color
@@ -250,3 +250,21 @@ def test_a_spawned_trajectory_extends_while_the_features_see_the_agent():
     np.testing.assert_allclose(poses[:13, 0, 3], np.concatenate([[1.0], t[1:13]]))  # x = frame, linear
     np.testing.assert_allclose(poses[13:, 0, 3], 12.0)  # held after the last valid frame
     assert poses[0, 0, 3] == 1.0
+
+
+def test_region_agent_fraction_reads_the_cells_around_a_pixel_and_skips_other_agents():
+    from agg.train.topology_track import region_agent_fraction
+
+    bank = {"background": np.array([[1.0, 0, 0]]), "rigid": np.array([[0, 1.0, 0]]),
+            "non-rigid": np.array([[0, 0, 1.0]])}
+    feats = np.zeros((10, 20, 3), np.float32)
+    feats[..., 0] = 1.0  # background everywhere (cells of 8 x 8 pixels at 160 x 80)
+    feats[2:6, 4:8] = [0, 1, 0]  # a car: cells x 4..7, y 2..5 = pixels x 32..63, y 16..47
+    car = np.array([48.0, 32.0])
+    assert region_agent_fraction(feats, bank, 0.5, car, 12.0, 160, 80) == 1.0
+    assert region_agent_fraction(feats, bank, 0.5, np.array([130.0, 60.0]), 12.0, 160, 80) == 0.0
+    # a larger square: cells x 1..11, y 0..9 (clipped), 16 of those 110 on the car
+    assert region_agent_fraction(feats, bank, 0.5, car, 40.0, 160, 80) == pytest.approx(16 / 110)
+    exclude = np.zeros((80, 160), bool)
+    exclude[16:48, 32:64] = True  # another agent's prior mask covers the car: no cell of it counts
+    assert region_agent_fraction(feats, bank, 0.5, car, 12.0, 160, 80, exclude) == 0.0

@@ -203,8 +203,9 @@ def region_agent_fraction(features: np.ndarray, bank: dict, tau_sem: float, uv: 
     [height, width] (e.g. the prior dynamic masks: pixels already explained by another agent) are skipped.
     0 when no cell is left."""
     h, w = features.shape[:2]
-    x0, x1 = np.clip(np.floor((uv[0] - radius) * w / width), 0, w - 1), np.clip(np.ceil((uv[0] + radius) * w / width), 0, w - 1)
-    y0, y1 = np.clip(np.floor((uv[1] - radius) * h / height), 0, h - 1), np.clip(np.ceil((uv[1] + radius) * h / height), 0, h - 1)
+    lo = np.floor((uv - radius + 0.5) * np.array([w / width, h / height]))  # cells holding the square's corners
+    hi = np.floor((uv + radius + 0.5) * np.array([w / width, h / height]))
+    (x0, y0), (x1, y1) = np.clip(lo, 0, [w - 1, h - 1]), np.clip(hi, 0, [w - 1, h - 1])
     ys, xs = np.mgrid[int(y0):int(y1) + 1, int(x0):int(x1) + 1]  # cell indices
     ys, xs = ys.ravel(), xs.ravel()
     if exclude is not None:
