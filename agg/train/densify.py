@@ -52,6 +52,13 @@ OVERSIZE_MODES = ("prune", "clamp")
 STAT_NAMES = ("grad", "count", "radius")
 
 
+def highest(score: Tensor, cap: int) -> Tensor:
+    """[N] bool: the ``cap`` rows of highest ``score`` [N] (stable: the earlier row wins a tie)."""
+    keep = torch.zeros(len(score), dtype=torch.bool, device=score.device)
+    keep[torch.sort(score, descending=True, stable=True).indices[:cap]] = True
+    return keep
+
+
 @dataclass
 class DensifyConfig:
     """Densification schedule and thresholds (sizes are fractions of the scene extent given to ``Densifier``)."""
@@ -225,9 +232,7 @@ class Densifier:
         keep = ~prune | protected
         if int(keep.sum()) > cfg.max_gaussians:  # over the cap already: drop the least opaque, protected last
             score = torch.where(keep, opacity + 2.0 * protected.float(), torch.full_like(opacity, -1.0))
-            order = torch.sort(score, descending=True, stable=True).indices[:cfg.max_gaussians]
-            keep = torch.zeros_like(keep)
-            keep[order] = True
+            keep = highest(score, cfg.max_gaussians)
 
         grow = keep & ~prune & (s["count"] > 0) & (mean_grad > cfg.grad_threshold)
         budget = max(cfg.max_gaussians - int(keep.sum()), 0)

@@ -97,6 +97,13 @@ class TopologyConfig:
         return 0 < iteration <= self.stop and iteration % self.every == 0
 
 
+def _box_poses(node) -> np.ndarray:
+    """[T, K, 4, 4] refined world_from_box of every instance of an agent node at every frame (float64)."""
+    with torch.no_grad():
+        poses = torch.stack([node.world_from_box(t) for t in range(node.num_frames)])
+    return poses.cpu().numpy().astype(np.float64)
+
+
 def _rows(params: GaussianParams, idx: np.ndarray) -> dict[str, Tensor]:
     i = torch.as_tensor(idx, dtype=torch.long, device=params.means.device)
     return {n: getattr(params, n).detach()[i].clone() for n in PARAM_NAMES}
@@ -191,9 +198,7 @@ class TopologyEvolution:
         uv, z, vis = tt.project(means, camera_from_world, K, self.width, self.height, cfg.near_m * self.unit)
         surface = np.ones(len(means), bool)
         if self.depth is not None:
-            ui = np.clip(np.rint(uv[:, 0]), 0, self.width - 1).astype(np.int64)
-            vi = np.clip(np.rint(uv[:, 1]), 0, self.height - 1).astype(np.int64)
-            d = np.asarray(self.depth[frame], np.float32)[vi, ui]
+            d = tt.depth_at(self.depth[frame], uv, self.width, self.height)
             vis &= (d <= 0) | (z <= d * (1 + cfg.surface_tolerance))
             surface = (d <= 0) | (np.abs(z - d) <= cfg.surface_tolerance * d)
         moving = vis & (grad > 0)
@@ -213,10 +218,10 @@ class TopologyEvolution:
         out = []
         for node in graph.agent_nodes():
             k = node.num_instances
-            poses = torch.stack([node.world_from_box(i) for i in range(node.num_frames)]).cpu().numpy()
+            poses = _box_poses(node)
             half = tt.half_extents(node.gaussians.means.detach().cpu().numpy(), node.instance.cpu().numpy(), k,
                                    minimum=0.1 * self.unit)
-            out.append({"node": node, "poses": poses.astype(np.float64), "valid": node.valid.cpu().numpy(),
+            out.append({"node": node, "poses": poses, "valid": node.valid.cpu().numpy(),
                         "half": half * (1 + self.config.match_margin)})
         return out
 
@@ -256,7 +261,8 @@ class TopologyEvolution:
                 continue
             valid = node.valid.cpu().numpy()  # [T, K]
             keep = np.ones(node.num_instances, bool)
-            for k in np.flatnonzero(td.static_instances(td.centres(node), valid, dc.static_m * self.unit)):
+            centres = _box_poses(node)[:, :, :3, 3]  # [T, K, 3]
+            for k in np.flatnonzero(td.static_instances(centres, valid, dc.static_m * self.unit)):
                 frames = np.flatnonzero(valid[:, k])
                 frac, n = td.agent_like_fraction(
                     td.world_means_at(node, int(k), frames.tolist()), cfw[frames],

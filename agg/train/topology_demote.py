@@ -12,8 +12,8 @@ An instance is **demoted** when both hold over its valid frames:
 - **not agent-like**: of its Gaussians in view (in the image of the refined camera and, where there is prior
   depth, not behind the observed surface by more than ``surface_tolerance``, so a Gaussian hidden behind
   another object reads no feature), fewer than ``agent_fraction`` read an agent-like feature
-  (``topology_track.agent_like``, the same test that selects spawn candidates). Only frames where those Gaussians cover at least ``min_cells`` cells of
-  the low-resolution feature map count: a far or mostly hidden car covers a cell or two whose features are
+  (``topology_track.agent_like``, the same test that selects spawn candidates). Only frames where those
+  Gaussians cover at least ``min_cells`` cells of the low-resolution feature map count: a far or mostly hidden car covers a cell or two whose features are
   blended with its surroundings (measured: a parked car showing 7 pixels read 0 % agent-like), which is no
   evidence either way. An instance with no such frame is kept.
 
@@ -66,9 +66,7 @@ def agent_like_fraction(means_by_frame: list[np.ndarray], camera_from_world: np.
     for i, means in enumerate(means_by_frame):
         uv, z, vis = tt.project(means, camera_from_world[i], K[i], width, height, near)
         if depth is not None:
-            ui = np.clip(np.rint(uv[:, 0]), 0, width - 1).astype(np.int64)
-            vi = np.clip(np.rint(uv[:, 1]), 0, height - 1).astype(np.int64)
-            d = np.asarray(depth[i], np.float32)[vi, ui]
+            d = tt.depth_at(depth[i], uv, width, height)
             vis &= (d <= 0) | (z <= d * (1 + surface_tolerance))  # not hidden behind the observed surface
         cells = np.unique(np.floor((uv[vis] + 0.5) * np.array([w / width, h / height])).astype(np.int64), axis=0)
         if len(cells) < min_cells:
@@ -79,28 +77,22 @@ def agent_like_fraction(means_by_frame: list[np.ndarray], camera_from_world: np.
     return (hits / total if total else 1.0), judged
 
 
+def composed(node, instance: int, frame: int) -> dict:
+    """One instance's Gaussians composed in world coordinates at ``frame`` (activated values, no gradient)."""
+    with torch.no_grad():
+        g = node.compose(frame, valid=torch.ones(node.num_instances, dtype=torch.bool))
+    sel = node.instance == instance  # [N]
+    return {k: v[sel] for k, v in g.items()}
+
+
 def world_rows(node, instance: int, frame: int) -> GaussianParams:
     """The raw parameters of one instance's Gaussians composed in world coordinates at ``frame`` (background
     rows: means, log-scales, quaternions, opacity logits, SH)."""
-    with torch.no_grad():
-        g = node.compose(frame, valid=torch.ones(node.num_instances, dtype=torch.bool))
-        sel = node.instance == instance  # [N]
-        opac = g["opacities"][sel].clamp(1e-6, 1 - 1e-6)
-        return GaussianParams(g["means"][sel].clone(), torch.log(g["scales"][sel]), g["quats"][sel].clone(),
-                              torch.log(opac / (1 - opac)), g["sh"][sel].clone())
-
-
-def centres(node) -> np.ndarray:
-    """[T, K, 3] refined box centres of every instance of an agent node."""
-    with torch.no_grad():
-        return torch.stack([node.world_from_box(t)[:, :3, 3] for t in range(node.num_frames)]).cpu().numpy()
+    g = composed(node, instance, frame)
+    opac = g["opacities"].clamp(1e-6, 1 - 1e-6)
+    return GaussianParams(g["means"], torch.log(g["scales"]), g["quats"], torch.log(opac / (1 - opac)), g["sh"])
 
 
 def world_means_at(node, instance: int, frames: list[int]) -> list[np.ndarray]:
     """World means [N, 3] of one instance at each of ``frames``."""
-    out = []
-    with torch.no_grad():
-        for t in frames:
-            g = node.compose(t, valid=torch.ones(node.num_instances, dtype=torch.bool))
-            out.append(g["means"][node.instance == instance].cpu().numpy().astype(np.float64))
-    return out
+    return [composed(node, instance, t)["means"].cpu().numpy().astype(np.float64) for t in frames]

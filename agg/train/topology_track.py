@@ -41,6 +41,13 @@ def project(means: np.ndarray, camera_from_world: np.ndarray, K: np.ndarray, wid
     return uv, z, vis
 
 
+def depth_at(depth: np.ndarray, uv: np.ndarray, width: int, height: int) -> np.ndarray:
+    """[N] prior depth (0 = none) of a [height, width] depth map at the nearest pixel of each uv [N, 2]."""
+    ui = np.clip(np.rint(uv[:, 0]), 0, width - 1).astype(np.int64)
+    vi = np.clip(np.rint(uv[:, 1]), 0, height - 1).astype(np.int64)
+    return np.asarray(depth, np.float32)[vi, ui]
+
+
 def sample_features(features: np.ndarray, uv: np.ndarray, width: int, height: int) -> np.ndarray:
     """Bilinear samples [M, C] of a low-resolution feature map [h, w, C] at training-resolution pixels uv [M, 2]."""
     h, w = features.shape[:2]

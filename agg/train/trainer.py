@@ -24,7 +24,7 @@ from agg.nodes.gaussians import keep_rows
 from agg.io.bundle import SceneBundle
 from agg.train.config import TrainConfig
 from agg.train.data import TrainData
-from agg.train.densify import DensifyConfig, Densifier
+from agg.train.densify import DensifyConfig, Densifier, highest
 from agg.eval.metrics import psnr
 from agg.train.losses import photometric_loss, semantic_attention_loss
 from agg.train.tick_tock import GROUPS, TickTockSchedule, set_trainable
@@ -258,12 +258,9 @@ class Trainer:
     def _fit_budget(self) -> None:
         """A demoted agent's Gaussians may land in a full background: drop its least opaque rows to the budget."""
         bg = self.graph.background
-        over = len(bg) - self.cfg.max_gaussians
-        if over <= 0:
+        if len(bg) <= self.cfg.max_gaussians:
             return
-        opac = bg.opacity_logits.detach().reshape(len(bg), -1)[:, 0]  # [N]
-        keep = torch.ones(len(bg), dtype=torch.bool, device=opac.device)
-        keep[torch.topk(opac, over, largest=False).indices] = False
+        keep = highest(bg.opacity_logits.detach().reshape(len(bg), -1)[:, 0], self.cfg.max_gaussians)  # [N]
         keep_rows(bg, keep, self.optimizers.get("static"))
         src = torch.nonzero(keep).reshape(-1)
         if self.densifier is not None:
