@@ -9,13 +9,13 @@ An instance is **demoted** when both hold over its valid frames:
 
 - **static**: its refined box centre stays within ``static_m`` metres of its median position (a moving car can
   never be demoted, whatever its features say);
-- **not agent-like**: of its Gaussians in view (in the image of the refined camera and, where there is prior
-  depth, not behind the observed surface by more than ``surface_tolerance``, so a Gaussian hidden behind
-  another object reads no feature), fewer than ``agent_fraction`` read an agent-like feature
-  (``topology_track.agent_like``, the same test that selects spawn candidates). Only frames where those
-  Gaussians cover at least ``min_cells`` cells of the low-resolution feature map count: a far or mostly hidden car covers a cell or two whose features are
-  blended with its surroundings (measured: a parked car showing 7 pixels read 0 % agent-like), which is no
-  evidence either way. An instance with no such frame is kept.
+- **not agent-like**: of its Gaussians in view (in the image of the refined camera and, where there is prior depth,
+  not behind the observed surface by more than ``surface_tolerance``, so a Gaussian hidden behind another object
+  reads no feature), fewer than ``agent_fraction`` read an agent-like feature (``topology_track.agent_like``, the
+  same test that selects spawn candidates). Only frames where those Gaussians cover at least ``min_cells`` cells of
+  the low-resolution feature map count: a far or mostly hidden car covers a cell or two whose features are blended
+  with its surroundings (measured: a parked car showing 7 pixels read 0 % agent-like), which is no evidence either
+  way. An instance with no such frame is kept.
 
 A demoted instance's Gaussians are not deleted: they move to the background in world coordinates (composed at its
 middle valid frame), so the pixels it explained keep rendering and only the graph's topology changes. A parked
