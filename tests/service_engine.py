@@ -2,8 +2,8 @@
 
 It is not a mock of the queue: the real worker, Redis and job store run it. It reads the uploaded video's frame
 count with the real reader, "trains" for ``AGG_TEST_ENGINE_ITERS`` iterations of ``AGG_TEST_ENGINE_SLEEP``
-seconds, checkpoints every ``checkpoint_every`` iterations with ``torch.save`` (atomic rename), resumes from the
-checkpoint, polls ``should_stop`` every iteration, and appends "pid iteration" per iteration to
+seconds, checkpoints every ``checkpoint_every`` iterations with ``torch.save`` (atomic rename) when ``checkpoint_ok()``
+allows, resumes from the checkpoint, polls ``should_stop`` every iteration, and appends "pid iteration" per iteration to
 ``scene_dir/iterations.log`` so a test can check that a resumed attempt continued from the checkpoint.
 """
 
@@ -19,7 +19,7 @@ class Cancelled(Exception):
 
 
 def reconstruct(input_path, scene_dir, preset="fast", *, progress=None, should_stop=None, resume=True,
-                checkpoint_every=None, overrides=None, max_frames=None, intrinsics=None) -> dict:
+                checkpoint_every=None, overrides=None, max_frames=None, intrinsics=None, checkpoint_ok=None) -> dict:
     import time
 
     import torch
@@ -48,9 +48,8 @@ def reconstruct(input_path, scene_dir, preset="fast", *, progress=None, should_s
             time.sleep(pause)
             log.write(f"{os.getpid()} {i}\n")
             log.flush()
-            if (i + 1) % every == 0:
-                if should_stop is not None and should_stop():  # never write after losing the job
-                    raise Cancelled(f"stopped at iteration {i + 1}")
+            # never write after losing the job (the next should_stop() ends this attempt)
+            if (i + 1) % every == 0 and (checkpoint_ok is None or checkpoint_ok()):
                 torch.save({"iteration": i + 1}, scene_dir / "checkpoint.tmp")
                 os.replace(scene_dir / "checkpoint.tmp", ckpt)
             if progress is not None:

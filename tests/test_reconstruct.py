@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+from pathlib import Path
 
 import av
 import numpy as np
@@ -16,6 +17,8 @@ from agg.synth.corrupt import NoiseConfig
 from agg.synth.scene import SceneConfig
 from agg.synth.suite import generate, write_bundle
 from agg.train import reconstruct
+
+SAMPLE = str(Path(__file__).resolve().parents[1] / "samples" / "dashcam.mp4")
 
 EVAL_KEYS = {"psnr", "ssim", "lpips", "psnr_agents", "ssim_agents", "split", "n_test_frames", "render_fps",
              "n_gaussians", "n_agents"}
@@ -43,6 +46,9 @@ def test_reconstruct_writes_a_complete_scene(scene, capsys):
     meta = json.loads((scene / "scene.json").read_text())
     assert meta["status"] == "done" and meta["test_frames"] == [4, 9]
     assert set(meta["summary"]["nodes"]) >= {"camera", "background", "rigid"}
+    log = meta["summary"]["topology"]  # one row per evolution of the tiny preset
+    assert log and all({"iteration", "candidates", "clusters", "tracks", "track_runs", "spawned", "pruned"} <= set(r)
+                       for r in log)
 
 
 def test_eval_prints_the_stable_json_keys(scene, capsys):
@@ -114,3 +120,24 @@ def test_a_black_video_trains_without_nan(tmp_path):
     s = reconstruct(path, tmp_path / "s", "tiny")
     assert s["n_agents"] == 0 and "sky" not in s["nodes"]
     _finite_run(s, tmp_path / "s")
+
+
+def test_priors_poll_should_stop_and_a_resumed_run_keeps_the_finished_priors(tmp_path):
+    """A cancellation during the priors stops at the next step; the poses already written are not estimated
+    again when the job resumes."""
+    from agg.io.bundle import SceneBundle
+    from agg.train import Cancelled
+    from agg.train.reconstruct import prepare_bundle
+
+    seen: list[dict] = []
+    with pytest.raises(Cancelled, match="depth"):
+        prepare_bundle(SAMPLE, tmp_path, seen.append, max_frames=8,
+                       should_stop=lambda: bool(seen) and seen[-1]["step"] == "depth")
+    b = SceneBundle.load(tmp_path / "bundle")
+    assert b.has("poses") and not b.has("depth_dense")
+    poses = b.world_from_camera.copy()
+    seen.clear()
+    b = prepare_bundle(SAMPLE, tmp_path, seen.append, max_frames=8)
+    assert "poses" not in {e["step"] for e in seen}  # skipped: already in the bundle
+    assert b.has("depth_dense") and b.has("tracklets")
+    np.testing.assert_array_equal(b.world_from_camera, poses)

@@ -117,6 +117,25 @@ def test_resume_reproduces_the_uninterrupted_loss_curve_and_cancellation_is_coop
     assert resumed.graph.num_gaussians() == full.graph.num_gaussians()
 
 
+def test_no_checkpoint_is_written_once_checkpoint_ok_says_no(bundle, tmp_path):
+    """A worker that lost its job's lease passes checkpoint_ok=holds_lease: neither the periodic write nor the
+    write on stopping may replace the checkpoint of the attempt that took the job over."""
+    t = _trainer(bundle, iterations=20, ablate=frozenset({"topology"}))
+    lease = {"held": True}
+
+    def stop() -> bool:
+        if t.iteration >= 5:
+            lease["held"] = False
+        return t.iteration >= 7
+
+    t.should_stop, t.checkpoint_ok = stop, lambda: lease["held"]
+    ckpt = tmp_path / "ckpt.pt"
+    with pytest.raises(Cancelled):
+        t.run(ckpt, checkpoint_every=2)
+    assert t.iteration == 7
+    assert torch.load(ckpt, weights_only=False)["iteration"] == 4  # iterations 6 and 7 (the stop) wrote nothing
+
+
 def test_training_frames_are_the_bundles_frames_at_the_training_size(bundle):
     data = load_train_data(bundle, 64)
     assert (data.width, data.height) == (64, 40)

@@ -232,7 +232,8 @@ def _run_engine(store: JobStore, job: dict, attempt: int, settings: WorkerSettin
     def should_stop() -> bool:
         return not hb.holds_lease() or hb.stop.is_set() or time.monotonic() > deadline
 
-    kwargs = dict(progress=sink, should_stop=should_stop, resume=True, checkpoint_every=cfg.checkpoint_every)
+    kwargs = dict(progress=sink, should_stop=should_stop, checkpoint_ok=hb.holds_lease, resume=True,
+                  checkpoint_every=cfg.checkpoint_every)
     kwargs.update(engine_options(job.get("options") or {}, job["input_path"]))
     timed_out = f"timed out after {job.get('timeout_s')} s (the limit of preset {job['preset']!r})"
     try:

@@ -118,12 +118,15 @@ def associate(tracks: list[_Track], z: np.ndarray, R: np.ndarray, gate: float, f
 def track_points(z_steps: list[np.ndarray], r_steps: list[np.ndarray], dt: np.ndarray, *, accel_var: float,
                  init_vel_var: float, gate: float, max_missed: int, feat_steps: list[np.ndarray] | None = None,
                  appearance_weight: float = 0.0, appearance_memory: float = 0.7,
-                 extra_gate: Callable[[int, np.ndarray], np.ndarray] | None = None) -> list[TrackHistory]:
+                 extra_gate: Callable[[int, np.ndarray], np.ndarray] | None = None,
+                 observed: np.ndarray | None = None) -> list[TrackHistory]:
     """Track 3D measurements over T steps.
 
     z_steps[i]: [N_i, 3] world positions measured at step i; r_steps[i]: [N_i, 3, 3] their covariances;
     dt: [T] frames elapsed since the previous step (dt[0] unused); feat_steps[i]: [N_i, F] appearance descriptors
-    (non-negative, summing to 1) or None; extra_gate(step, predicted position [3]) -> [N_i] bool or None.
+    (non-negative, summing to 1) or None; extra_gate(step, predicted position [3]) -> [N_i] bool or None;
+    observed: [T] bool, False at steps that could not measure anything (a held-out frame): a track coasts through
+    them without counting a miss (None: every step observed).
     Returns every track ever started (also the one-hit ones; the caller filters by ``hits``), in order of creation.
     """
     n_steps = len(z_steps)
@@ -151,7 +154,7 @@ def track_points(z_steps: list[np.ndarray], r_steps: list[np.ndarray], dt: np.nd
             if f is not None:
                 tr.feat = appearance_memory * tr.feat + (1.0 - appearance_memory) * f[b]
         for a, tr in enumerate(live):
-            if a not in matched:
+            if a not in matched and (observed is None or observed[i]):
                 tr.misses += 1
             tr.xs.append(tr.kf.x.copy())
             tr.ps.append(tr.kf.P.copy())

@@ -36,9 +36,13 @@ def _is_bundle(path: Path) -> bool:
 
 
 def prepare_bundle(input_path: str | Path, scene_dir: Path, progress: Callable[[dict], None] | None = None,
-                   max_frames: int | None = None, intrinsics: str | None = None) -> SceneBundle:
+                   max_frames: int | None = None, intrinsics: str | None = None,
+                   should_stop: Callable[[], bool] | None = None) -> SceneBundle:
     """The bundle to train on: the input bundle itself when it has every prior, else ``scene_dir/bundle`` with
-    the missing priors estimated (a video or dataset folder is ingested first)."""
+    the missing priors estimated (a video or dataset folder is ingested first).
+
+    ``should_stop`` is polled at every priors step (each frame of the per-frame stages, each stage's start and
+    end); it raises ``Cancelled`` there. Every finished prior is already in the bundle, so a resumed job skips it."""
     from agg.commands.priors import open_input
     from agg.priors.pipeline import PriorsConfig, run_priors
 
@@ -59,6 +63,8 @@ def prepare_bundle(input_path: str | Path, scene_dir: Path, progress: Callable[[
         bundle = open_input(args)
 
     def bar(stage: str, done: int, total: int) -> None:
+        if should_stop is not None and should_stop():
+            raise Cancelled(f"cancelled while estimating priors ({stage} {done}/{total})")
         if progress is not None:
             progress({"stage": "priors", "phase": "priors", "step": stage, "done": done, "total": total})
 
@@ -107,11 +113,13 @@ def reconstruct(input_path: str | Path, scene_dir: str | Path, preset: str | Tra
                 progress: Callable[[dict], None] | None = None, should_stop: Callable[[], bool] | None = None,
                 resume: bool = True, checkpoint_every: int | None = None, overrides: dict | None = None,
                 ablate: str | None = None, gt_poses: bool = False, evaluate: bool = True,
-                max_frames: int | None = None, intrinsics: str | None = None) -> dict:
+                max_frames: int | None = None, intrinsics: str | None = None,
+                checkpoint_ok: Callable[[], bool] | None = None) -> dict:
     """Train a scene graph on ``input_path`` into ``scene_dir`` and return the summary (also in scene.json).
 
-    Raises ``Cancelled`` when ``should_stop()`` turns True (the checkpoint keeps the progress; calling again with
-    ``resume=True`` continues from it)."""
+    Raises ``Cancelled`` when ``should_stop()`` turns True, in the priors or in training (the checkpoint keeps the
+    progress; calling again with ``resume=True`` continues from it). ``checkpoint_ok()`` is asked before each
+    checkpoint write and False skips the write: a worker passes "I still hold this job's lease"."""
     scene_dir = Path(scene_dir)
     scene_dir.mkdir(parents=True, exist_ok=True)
     cfg = preset if isinstance(preset, TrainConfig) else get_preset(preset)
@@ -119,7 +127,7 @@ def reconstruct(input_path: str | Path, scene_dir: str | Path, preset: str | Tra
     if ablate is not None:
         cfg = cfg.with_ablation(ablate)
     t0 = time.perf_counter()
-    bundle = prepare_bundle(input_path, scene_dir, progress, max_frames, intrinsics)
+    bundle = prepare_bundle(input_path, scene_dir, progress, max_frames, intrinsics, should_stop)
     if gt_poses:
         bundle = with_gt_poses(bundle, scene_dir / "bundle_gt_poses")
     t_priors = time.perf_counter() - t0
@@ -132,7 +140,7 @@ def reconstruct(input_path: str | Path, scene_dir: str | Path, preset: str | Tra
             "test_frames": data.test_frames, "preset": cfg.name, "ablate": sorted(cfg.ablate),
             "gt_poses": bool(gt_poses), "config": cfg.as_dict(), "status": "training"}
     (scene_dir / "scene.json").write_text(json.dumps(meta, indent=1))
-    kwargs = {"progress": progress, "should_stop": should_stop}
+    kwargs = {"progress": progress, "should_stop": should_stop, "checkpoint_ok": checkpoint_ok}
     if resume and ckpt.is_file():
         trainer = Trainer.resume(ckpt, data, cfg, bundle, **kwargs)
     else:
@@ -148,7 +156,8 @@ def reconstruct(input_path: str | Path, scene_dir: str | Path, preset: str | Tra
     summary = {"iterations": trainer.iteration, "seconds_priors": round(t_priors, 2),
                "seconds_train": round(t_train, 2), "initial": initial, "n_gaussians": graph.num_gaussians(),
                "n_agents": graph.num_agents, "nodes": _node_names(graph), "agents_spawned": trainer.spawned,
-               "agents_pruned": trainer.pruned, "final_train_psnr": _recent_psnr(trainer.history)}
+               "agents_pruned": trainer.pruned, "topology": trainer.topology_log,
+               "final_train_psnr": _recent_psnr(trainer.history)}
     from agg.export import export_scene
 
     export_scene(graph, scene_dir / "scene.ply", scene_dir / "graph.json", bundle.timestamps_us,

@@ -30,9 +30,11 @@ background to the instance, into the canonical frame with ``inv(world_from_box(t
 where it matched) in which it sits most centrally in the box. Unmatched cluster centres are tracked over the
 frames with constant-velocity Kalman filters (the centre is the opacity-weighted centroid of the members on the
 observed surface, ``|z - depth| <= surface_tolerance * depth``, when there are enough of them: Gaussians in front
-of the surface are the agent's smear from other frames); a track with at least ``tau_life`` consecutive hits
-spawns a new rigid agent (``graph.rigid``, created when absent; the report's ``spawned_classes`` says what the
-features suggest): its Gaussians are the track's cluster Gaussians (those not reassigned), each moved into the
+of the surface are the agent's smear from other frames). Frames without statistics (held out) neither end a
+track nor break its run; the fragments of one object are joined and its outlying centroids dropped
+(``topology_spawn``); a track with at least ``tau_life`` consecutive hits spawns a new rigid agent
+(``graph.rigid``, created when absent; the report's ``spawned_classes`` says what the features suggest): its
+Gaussians are the track's cluster Gaussians (those not reassigned), each moved into the
 canonical frame with the track pose of the frame (among those it was clustered in) whose centre is nearest; its
 pose prior is the track, its centroids moved from the visible surface to the box centre and RTS-smoothed again
 (``topology_track.spawn_trajectory``: a box of the graph's median agent size or ``rigid_size_m``, yaw from the
@@ -57,6 +59,7 @@ from agg.nodes.rigid import RigidAgents, matrix_to_quat, quat_multiply
 from agg.train import topology_demote as td
 from agg.train import topology_track as tt
 from agg.train.topology_demote import DemoteConfig
+from agg.train.topology_spawn import plan_spawns
 
 
 @dataclass(frozen=True)
@@ -78,7 +81,10 @@ class TopologyConfig:
     track_meas_sigma_m: float = 0.5  # Kalman: cluster-centre measurement std (metres)
     track_accel_sigma_m: float = 0.3  # Kalman: white-acceleration std (metres / frame^2)
     track_init_vel_sigma_m: float = 2.0  # Kalman: std of a new track's velocity (metres / frame)
-    track_max_missed: int = 1  # frames a track may coast without a cluster
+    track_max_missed: int = 1  # frames with statistics a track may coast without a cluster
+    outlier_m: float = 1.0  # a spawned track's centroid this far off its steady path is dropped (tt.drop_outliers)
+    stitch_gap_frames: int = 2  # fragments of one object join across at most this many frames with statistics
+    # and no cluster (tt.stitch)
     smooth_accel_sigma_m: float = 0.05  # Kalman: acceleration std of the final (RTS) trajectory of a spawned agent
     extend_frames: int = 2  # spawned validity extends this many frames past the track while the box is in view
     extend_agent_fraction: float = 0.5  # ... and further while agent-like features are where its box would be
@@ -90,7 +96,10 @@ class TopologyConfig:
 
     def scaled(self, factor: float) -> "TopologyConfig":
         """The same settings with the iteration milestones scaled (a preset with fewer iterations)."""
-        return replace(self, every=max(1, int(round(self.every * factor))), stop=int(round(self.stop * factor)))
+        every = max(1, int(round(self.every * factor)))
+        # stop stays a multiple of every, so a scaled preset evolves as often as the paper (balanced: 667, 1334;
+        # rounding each alone gave 667 and 1333, and due(1333) never held)
+        return replace(self, every=every, stop=every * int(round(self.stop / self.every)))
 
     def due(self, iteration: int) -> bool:
         """Whether ``evolve`` runs after ``iteration`` (multiples of ``every`` up to ``stop``)."""
@@ -278,19 +287,6 @@ class TopologyEvolution:
                 nodes.add(name)
         return demoted, nodes, rows
 
-    def _spawn_half(self, graph, cls: str) -> np.ndarray:
-        """Box-frame half extents (x = l, y = h, z = w) assumed for a new agent of class ``cls``: the median of
-        the graph's instances of that class (their canonical extents), else the configured metric size."""
-        node = graph.rigid if cls == "rigid" else getattr(graph, "nonrigid", None)
-        if node is not None and node.num_instances > 0 and len(node.gaussians) > 0:
-            half = tt.half_extents(node.gaussians.means.detach().cpu().numpy(), node.instance.cpu().numpy(),
-                                   node.num_instances)
-            half = half[(half > 0).all(1)]
-            if len(half):
-                return np.median(half, 0)
-        l, w, h = self.config.rigid_size_m if cls == "rigid" else self.config.nonrigid_size_m
-        return 0.5 * np.array([l, h, w]) * self.unit
-
     def next_track_id(self, graph) -> int:
         """The id a spawned agent gets now: one more than every id in the graph, reserved or ever handed out."""
         ids = set(self.retired)
@@ -321,6 +317,7 @@ class TopologyEvolution:
         changed = pruned_nodes | demoted_nodes | ({"background"} if n_bg > n_old else set())
         report = {"iteration": iteration, "reassigned": 0, "spawned": [], "spawned_classes": [],
                   "pruned": pruned + demoted, "demoted": demoted, "candidates": 0, "clusters": 0, "tracks": 0,
+                  "track_runs": [],
                   "structure_changed": bool(pruned or demoted), "new_nodes": [], "rows_changed": sorted(changed),
                   "bg_src": src}
         if self.sum is None or not bool((self.count > 0).any()):
@@ -365,7 +362,7 @@ class TopologyEvolution:
                 better = d < depth_in_box[inside]
                 inside, d = inside[better], d[better]
                 target[inside], target_frame[inside], depth_in_box[inside] = (a, k), t, d
-        spawn = self._spawn_plan(unmatched, means, target[:, 0] >= 0, graph, report)
+        spawn = plan_spawns(self, graph, unmatched, means, target[:, 0] >= 0, has, report)
         return self._apply(graph, optimizer, report, target, target_frame, boxes, spawn)
 
     def _match(self, boxes: list[dict], t: int, centre: np.ndarray) -> tuple[int, int] | None:
@@ -379,62 +376,6 @@ class TopologyEvolution:
                     if d < best_d:
                         best, best_d = (a, int(k)), d
         return best
-
-    def _spawn_plan(self, unmatched: list[list[dict]], means: np.ndarray, taken: np.ndarray, graph,
-                    report: dict) -> list[dict]:
-        """Track the unmatched clusters; every track with a long enough run becomes a spawn plan (pose prior,
-        member rows and the frame each member is canonicalised at)."""
-        cfg, u = self.config, self.unit
-        params = tt.TrackParams(meas_sigma=cfg.track_meas_sigma_m * u, accel_sigma=cfg.track_accel_sigma_m * u,
-                                init_vel_sigma=cfg.track_init_vel_sigma_m * u, max_missed=cfg.track_max_missed)
-        centres = [np.array([c["centre"] for c in frame]).reshape(-1, 3) for frame in unmatched]
-        histories = tt.track_clusters(centres, params)
-        report["tracks"] = len(histories)
-        plans, claimed = [], taken.copy()
-        cfw = graph.camera.camera_from_world().detach().cpu().numpy().astype(np.float64)  # [T, 4, 4]
-        cam_centres = np.linalg.inv(cfw)[:, :3, 3]  # [T, 3]
-
-        def in_view(i: int, centre: np.ndarray) -> bool:
-            k = self.K[min(i, len(self.K) - 1)]
-            return bool(tt.project(centre[None], cfw[i], k, self.width, self.height, cfg.near_m * u)[2][0])
-
-        def evidence_for(half: np.ndarray):
-            def evidence(i: int, centre: np.ndarray) -> bool:
-                """Agent-like features around the box centre's pixel (a square of the box's half height), off
-                the pixels the prior dynamic masks give to other agents."""
-                k = self.K[min(i, len(self.K) - 1)]
-                uv, z, vis = tt.project(centre[None], cfw[i], k, self.width, self.height, cfg.near_m * u)
-                if self.bank is None or not vis[0]:
-                    return False
-                frac = tt.region_agent_fraction(self.semantics.features[i], self.bank, cfg.tau_sem, uv[0],
-                                                k[0, 0] * half[1] / z[0], self.width, self.height,
-                                                None if self.dynamic is None else self.dynamic[i])
-                return frac >= cfg.extend_agent_fraction
-            return evidence
-
-        for h in histories:
-            run, _ = tt.longest_run(h.assoc >= 0)
-            if run < cfg.tau_life:
-                continue
-            hits = np.flatnonzero(h.assoc >= 0)
-            clusters = [(int(t), unmatched[t][int(h.assoc[t])]) for t in hits]
-            rows = np.unique(np.concatenate([c["members"] for _, c in clusters]))
-            rows = rows[~claimed[rows]]
-            if len(rows) < max(cfg.min_agent_gaussians, 1):
-                continue
-            fallback = tt.ground_axis_yaw(means[rows])
-            nonrigid = float(np.mean([c["nonrigid"] for _, c in clusters]))
-            cls = "non-rigid" if nonrigid > 0.5 else "rigid"
-            half = self._spawn_half(graph, cls)
-            poses, valid = tt.spawn_trajectory(
-                h.state, {t: c["centre"] for t, c in clusters}, cam_centres, half, in_view,
-                fallback, meas_sigma=params.meas_sigma, accel_sigma=cfg.smooth_accel_sigma_m * u,
-                init_vel_sigma=params.init_vel_sigma, min_speed=cfg.min_speed_m * u, extend=cfg.extend_frames,
-                evidence=evidence_for(half))
-            frame_of = tt.nearest_frame(means[rows], rows, [(t, c["members"]) for t, c in clusters], poses)
-            claimed[rows] = True
-            plans.append({"rows": rows, "frame_of": frame_of, "poses": poses, "valid": valid, "class": cls})
-        return plans
 
     def _apply(self, graph, optimizer, report: dict, target: np.ndarray, target_frame: np.ndarray,
                boxes: list[dict], spawn: list[dict]) -> dict:

@@ -9,8 +9,9 @@
 - ``half_extents`` / ``inside_box``: box-frame extents of agent instances from their canonical Gaussians, and the
   point-in-(grown)-box test used to match clusters to existing agents.
 - ``track_clusters``: constant-velocity Kalman tracking of the unmatched cluster centres over the frames
-  (``agg.priors.kalman.track_points``: gated Hungarian association, RTS smoothing); ``longest_run`` gives a
-  track's longest run of consecutive hits (the paper's age >= tau_life test).
+  (``agg.priors.kalman.track_points``: gated Hungarian association, RTS smoothing); ``stitch`` joins the
+  fragments of one object; ``longest_run`` gives a track's longest run of consecutive hits over the frames that
+  had statistics (the paper's age >= tau_life test).
 - ``spawn_trajectory``: a track of cluster centroids (visible-surface samples) -> box centres
   (``box_centre_from_surface``), RTS-smoothed again -> ``trajectory_poses``: per-frame ``world_from_box``
   [T, 4, 4] and validity [T]; ``nearest_frame`` picks the frame each spawned Gaussian is canonicalised at.
@@ -24,6 +25,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.sparse import csr_matrix
+from scipy.sparse.csgraph import connected_components
 from scipy.stats import chi2
 
 from agg.priors.kalman import TrackHistory, smooth_sequence, track_points
@@ -123,28 +126,90 @@ class TrackParams:
     max_missed: int = 1  # consecutive frames a track may coast
 
 
-def track_clusters(centres: list[np.ndarray], p: TrackParams) -> list[TrackHistory]:
+def track_clusters(centres: list[np.ndarray], p: TrackParams, observed: np.ndarray | None = None
+                   ) -> list[TrackHistory]:
     """Track cluster centres over T frames (centres[t]: [n_t, 3], empty where a frame has none or no statistics).
-    Returns every track ever started (``agg.priors.kalman.TrackHistory``, in order of creation)."""
+    ``observed`` [T] bool marks the frames that had statistics (a held-out frame never does): a track coasts
+    through the others without counting a miss. Returns every track ever started
+    (``agg.priors.kalman.TrackHistory``, in order of creation)."""
     r_steps = [np.tile(np.eye(3) * p.meas_sigma ** 2, (len(c), 1, 1)) for c in centres]
     return track_points([np.asarray(c, float).reshape(-1, 3) for c in centres], r_steps, np.ones(len(centres)),
                         accel_var=p.accel_sigma ** 2, init_vel_var=p.init_vel_sigma ** 2,
-                        gate=float(chi2.ppf(p.gate_prob, 3)), max_missed=p.max_missed)
+                        gate=float(chi2.ppf(p.gate_prob, 3)), max_missed=p.max_missed, observed=observed)
 
 
-def longest_run(hit: np.ndarray) -> tuple[int, int]:
-    """(length, start) of the longest run of True in hit [T] (consecutive frames with a measurement)."""
+def longest_run(hit: np.ndarray, observed: np.ndarray | None = None) -> tuple[int, int]:
+    """(length, start) of the longest run of True in hit [T] (consecutive frames with a measurement). Frames
+    where ``observed`` [T] is False (no statistics: held out) neither count nor break a run."""
+    hit = np.asarray(hit, bool)
+    frames = np.arange(len(hit)) if observed is None else np.flatnonzero(observed)
     best, start, run, run_start = 0, -1, 0, 0
-    for i, h in enumerate(np.asarray(hit, bool)):
-        if h:
+    for i in frames:
+        if hit[i]:
             if run == 0:
-                run_start = i
+                run_start = int(i)
             run += 1
             if run > best:
                 best, start = run, run_start
         else:
             run = 0
     return best, start
+
+
+def stitch(states: list[np.ndarray], hits: list[np.ndarray], merge_dist: float, max_gap: int,
+           observed: np.ndarray | None = None) -> list[list[int]]:
+    """Groups (lists of indices) of track fragments that follow one object.
+
+    states[i] [T, 6]: fragment i's smoothed (x, y, z, vx, vy, vz), NaN outside its life; hits[i]: its number of
+    measurements. One object often yields several fragments: two clusters in one frame (its front and its
+    smear), or a track that ends where the object's gradients faded for two frames and restarts after. Two
+    fragments with at least 2 hits each are joined when they overlap in time and their median distance there is
+    at most ``merge_dist``, or when at most ``max_gap`` frames lie between the end of one and the start of the
+    other (counting only ``observed`` frames, [T] bool, when given) and each one's constant-velocity
+    extrapolation across the gap lands within ``merge_dist`` of the other's end (mean of the two). Groups are
+    the connected components, in order of their first fragment."""
+    n = len(states)
+    joined = np.zeros((n, n), bool)  # [n, n] same-object pairs (a < b)
+    life = [np.flatnonzero(~np.isnan(s[:, 0])) for s in states]
+    ok = [hits[i] >= 2 and len(life[i]) > 0 for i in range(n)]
+    for a in range(n):
+        for b in range(a + 1, n):
+            if not (ok[a] and ok[b]):
+                continue
+            both = np.intersect1d(life[a], life[b])
+            if len(both):
+                d = float(np.median(np.linalg.norm(states[a][both, :3] - states[b][both, :3], axis=1)))
+            else:
+                (x, y) = (a, b) if life[a][-1] < life[b][0] else (b, a)
+                end, start = int(life[x][-1]), int(life[y][0])
+                gap = start - end
+                if (gap - 1 if observed is None else int(np.count_nonzero(observed[end + 1:start]))) > max_gap:
+                    continue
+                fwd = states[x][end, :3] + states[x][end, 3:] * gap
+                back = states[y][start, :3] - states[y][start, 3:] * gap
+                d = 0.5 * float(np.linalg.norm(fwd - states[y][start, :3]) + np.linalg.norm(back - states[x][end, :3]))
+            joined[a, b] = d <= merge_dist
+    _, label = connected_components(csr_matrix(joined), directed=False)  # [n]
+    groups = [np.flatnonzero(label == g).tolist() for g in range(label.max(initial=-1) + 1)]
+    return sorted(groups, key=lambda g: min(int(life[i][0]) if len(life[i]) else 1 << 30 for i in g))
+
+
+def drop_outliers(z: np.ndarray, meas_sigma: float, accel_sigma: float, init_vel_sigma: float,
+                  max_residual: float, max_fraction: float = 1 / 3) -> np.ndarray:
+    """z [T, 3] (NaN where missing) with its outliers set to NaN: while the worst residual from the RTS-smoothed
+    track (acceleration std ``accel_sigma``: a steady path) exceeds ``max_residual``, that row goes, up to
+    ``max_fraction`` of the rows. A cluster that also took in Gaussians off the object (smear in front of the
+    surface, a neighbour) pulls its centroid metres away; the object's other frames outvote it."""
+    z = np.array(z, float)
+    r = np.tile(np.eye(3) * meas_sigma ** 2, (len(z), 1, 1))
+    budget = int(np.count_nonzero(~np.isnan(z[:, 0])) * max_fraction)
+    for _ in range(budget):
+        state, _ = smooth_sequence(z, r, accel_var=accel_sigma ** 2, init_vel_var=init_vel_sigma ** 2)
+        res = np.linalg.norm(z - state[:, :3], axis=1)  # [T], NaN where missing
+        if not np.any(res > max_residual):
+            break
+        z[int(np.nanargmax(res))] = np.nan
+    return z
 
 
 def visible_surface_offset(half: np.ndarray, view_dir: np.ndarray) -> np.ndarray:

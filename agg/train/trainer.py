@@ -29,6 +29,10 @@ from agg.eval.metrics import psnr
 from agg.train.losses import photometric_loss, semantic_attention_loss
 from agg.train.tick_tock import GROUPS, TickTockSchedule, set_trainable
 
+# what the topology log keeps of each evolution's report
+LOG_KEYS = ("iteration", "candidates", "clusters", "tracks", "track_runs", "reassigned", "spawned", "pruned",
+            "demoted")
+
 
 class Cancelled(Exception):
     """Training stopped because ``should_stop()`` returned True; the latest state is in the checkpoint."""
@@ -45,9 +49,12 @@ def scene_extent(graph: SceneGraph) -> float:
 
 class Trainer:
     def __init__(self, graph: SceneGraph, data: TrainData, config: TrainConfig, bundle: SceneBundle | None = None,
-                 progress: Callable[[dict], None] | None = None, should_stop: Callable[[], bool] | None = None):
+                 progress: Callable[[dict], None] | None = None, should_stop: Callable[[], bool] | None = None,
+                 checkpoint_ok: Callable[[], bool] | None = None):
+        """``checkpoint_ok()`` is asked before every checkpoint write; False skips it (a worker that lost its job's
+        lease must not overwrite the checkpoint of the attempt that now owns the job)."""
         self.graph, self.data, self.cfg, self.bundle = graph, data, config, bundle
-        self.progress, self.should_stop = progress, should_stop
+        self.progress, self.should_stop, self.checkpoint_ok = progress, should_stop, checkpoint_ok
         graph.K = data.K.clone()
         graph.width, graph.height = data.width, data.height
         cfg = config
@@ -58,6 +65,7 @@ class Trainer:
         self.history: list[dict] = []  # one row per iteration: loss, psnr, phase
         self.spawned: list[int] = []
         self.pruned: list[int] = []
+        self.topology_log: list[dict] = []  # one compact row per evolution (counts, ids, track runs)
         self.generator = torch.Generator().manual_seed(int(cfg.seed))
         self.order: list[int] = []
         dcfg = DensifyConfig(grad_threshold=cfg.grad_threshold, refine_start=cfg.densify_from,
@@ -272,6 +280,7 @@ class Trainer:
         report = self.topology.evolve(self.graph, self.optimizers.get("static"), self.iteration)
         self.spawned += list(report.get("spawned", []))
         self.pruned += list(report.get("pruned", []))
+        self.topology_log.append({k: report[k] for k in LOG_KEYS if k in report})
         if self.densifier is not None:
             src = report.get("bg_src")
             if src is not None:
@@ -293,8 +302,7 @@ class Trainer:
         start_it, t0 = self.iteration, time.perf_counter()
         while self.iteration < total:
             if self.should_stop is not None and self.should_stop():
-                if checkpoint is not None:
-                    self.save(checkpoint)
+                self._checkpoint(checkpoint)
                 raise Cancelled(f"cancelled at iteration {self.iteration}")
             row = self.step()
             if not math.isfinite(row["loss"]):
@@ -305,13 +313,17 @@ class Trainer:
                 self.emit(stage="train", iteration=self.iteration, total=total, phase=row["phase"],
                           loss=row["loss"], psnr=row["psnr"], n_gaussians=self.graph.num_gaussians(),
                           agents_spawned=len(self.spawned), agents_pruned=len(self.pruned), eta_s=eta)
-            if checkpoint is not None and every and self.iteration % every == 0:
-                self.save(checkpoint)
+            if every and self.iteration % every == 0:
+                self._checkpoint(checkpoint)
         return self.history
+
+    def _checkpoint(self, path: Path | None) -> None:
+        if path is not None and (self.checkpoint_ok is None or self.checkpoint_ok()):
+            self.save(path)
 
     def state_dict(self) -> dict:
         return {"graph": self.graph.state(), "iteration": self.iteration, "history": list(self.history),
-                "spawned": list(self.spawned), "pruned": list(self.pruned),
+                "spawned": list(self.spawned), "pruned": list(self.pruned), "topology_log": list(self.topology_log),
                 "generator": self.generator.get_state(), "order": list(self.order),
                 "optimizers": {k: o.state_dict() for k, o in self.optimizers.items()},
                 "densifier": self.densifier.state_dict() if self.densifier is not None else None,
@@ -337,6 +349,7 @@ class Trainer:
         trainer.iteration = state["iteration"]
         trainer.history = list(state["history"])
         trainer.spawned, trainer.pruned = list(state["spawned"]), list(state["pruned"])
+        trainer.topology_log = list(state.get("topology_log", []))
         trainer.generator.set_state(state["generator"])
         trainer.order = list(state["order"])
         if trainer.densifier is not None and state["densifier"] is not None:

@@ -1,0 +1,111 @@
+"""Spawn planning of adaptive topology evolution (Algorithm 1, the unmatched clusters): which tracks become new
+agents, with what pose prior, validity and member Gaussians. ``TopologyEvolution.evolve`` calls ``plan_spawns``
+and does the graph surgery itself.
+
+The unmatched cluster centres are tracked over the frames that had gradient statistics (a held-out frame never
+has any, and a track coasts through it without a miss); the fragments of one object (two clusters in one frame,
+a track that restarts after two frames without a cluster) are joined (``topology_track.stitch``); a joined track
+whose longest run over those frames reaches ``tau_life`` is planned, after its outlying centroids are dropped
+(``topology_track.drop_outliers``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from agg.priors.kalman import smooth_sequence
+from agg.train import topology_track as tt
+
+
+def plan_spawns(evo, graph, unmatched: list[list[dict]], means: np.ndarray, taken: np.ndarray,
+                observed: np.ndarray, report: dict) -> list[dict]:
+    """Track the unmatched clusters over the frames that had statistics (``observed``), join the fragments
+    of one object (``tt.stitch``); every joined track with a long enough run becomes a spawn plan (pose prior,
+    member rows and the frame each member is canonicalised at). ``evo``: the ``TopologyEvolution`` (its config,
+    scene unit, intrinsics, image size, prototype bank, features and prior dynamic masks)."""
+    cfg, u = evo.config, evo.unit
+    params = tt.TrackParams(meas_sigma=cfg.track_meas_sigma_m * u, accel_sigma=cfg.track_accel_sigma_m * u,
+                            init_vel_sigma=cfg.track_init_vel_sigma_m * u, max_missed=cfg.track_max_missed)
+    centres = [np.array([c["centre"] for c in frame]).reshape(-1, 3) for frame in unmatched]
+    histories = tt.track_clusters(centres, params, observed)
+    groups = tt.stitch([h.state for h in histories], [h.hits for h in histories], cfg.eps_m * u,
+                       cfg.stitch_gap_frames, observed)
+    report["tracks"] = len(groups)
+    plans, claimed, runs = [], taken.copy(), []
+    cfw = graph.camera.camera_from_world().detach().cpu().numpy().astype(np.float64)  # [T, 4, 4]
+    cam_centres = np.linalg.inv(cfw)[:, :3, 3]  # [T, 3]
+    n_frames = len(cfw)
+    r = np.tile(np.eye(3) * params.meas_sigma ** 2, (n_frames, 1, 1))  # [T, 3, 3]
+
+    def in_view(i: int, centre: np.ndarray) -> bool:
+        k = evo.K[min(i, len(evo.K) - 1)]
+        return bool(tt.project(centre[None], cfw[i], k, evo.width, evo.height, cfg.near_m * u)[2][0])
+
+    def evidence_for(half: np.ndarray):
+        def evidence(i: int, centre: np.ndarray) -> bool:
+            """Agent-like features around the box centre's pixel (a square of the box's half height), off
+            the pixels the prior dynamic masks give to other agents."""
+            k = evo.K[min(i, len(evo.K) - 1)]
+            uv, z, vis = tt.project(centre[None], cfw[i], k, evo.width, evo.height, cfg.near_m * u)
+            if evo.bank is None or not vis[0]:
+                return False
+            frac = tt.region_agent_fraction(evo.semantics.features[i], evo.bank, cfg.tau_sem, uv[0],
+                                            k[0, 0] * half[1] / z[0], evo.width, evo.height,
+                                            None if evo.dynamic is None else evo.dynamic[i])
+            return frac >= cfg.extend_agent_fraction
+        return evidence
+
+    for group in groups:
+        per_frame: dict[int, list[dict]] = {}  # frame -> the group's clusters there
+        for i in group:
+            for t in np.flatnonzero(histories[i].assoc >= 0):
+                per_frame.setdefault(int(t), []).append(unmatched[t][int(histories[i].assoc[t])])
+        hit = np.zeros(n_frames, bool)
+        hit[list(per_frame)] = True
+        run, _ = tt.longest_run(hit, observed)
+        runs.append(int(run))
+        if run < cfg.tau_life:
+            continue
+        clusters = [(t, c) for t in sorted(per_frame) for c in per_frame[t]]
+        rows = np.unique(np.concatenate([c["members"] for _, c in clusters]))
+        rows = rows[~claimed[rows]]
+        if len(rows) < max(cfg.min_agent_gaussians, 1):
+            continue
+        centroids = {t: np.average([c["centre"] for c in cs], axis=0, weights=[len(c["members"]) for c in cs])
+                     for t, cs in per_frame.items()}  # frame -> [3], member-weighted over its clusters
+        z = np.full((n_frames, 3), np.nan)
+        for t, c in centroids.items():
+            z[t] = c
+        z = tt.drop_outliers(z, params.meas_sigma, cfg.smooth_accel_sigma_m * u, params.init_vel_sigma,
+                             cfg.outlier_m * u)
+        centroids = {t: c for t, c in centroids.items() if not np.isnan(z[t, 0])}
+        state, _ = smooth_sequence(z, r, accel_var=params.accel_sigma ** 2,
+                                   init_vel_var=params.init_vel_sigma ** 2)  # [T, 6]
+        fallback = tt.ground_axis_yaw(means[rows])
+        nonrigid = float(np.mean([c["nonrigid"] for _, c in clusters]))
+        cls = "non-rigid" if nonrigid > 0.5 else "rigid"
+        half = spawn_half(graph, cls, cfg, u)
+        poses, valid = tt.spawn_trajectory(
+            state, centroids, cam_centres, half, in_view, fallback, meas_sigma=params.meas_sigma,
+            accel_sigma=cfg.smooth_accel_sigma_m * u, init_vel_sigma=params.init_vel_sigma,
+            min_speed=cfg.min_speed_m * u, extend=cfg.extend_frames, evidence=evidence_for(half))
+        frame_of = tt.nearest_frame(means[rows], rows, [(t, c["members"]) for t, c in clusters], poses)
+        claimed[rows] = True
+        plans.append({"rows": rows, "frame_of": frame_of, "poses": poses, "valid": valid, "class": cls})
+    # the longest run of each (joined) track over the frames with statistics, longest first
+    report["track_runs"] = sorted(runs, reverse=True)[:8]
+    return plans
+
+
+def spawn_half(graph, cls: str, cfg, unit: float) -> np.ndarray:
+    """Box-frame half extents (x = l, y = h, z = w) assumed for a new agent of class ``cls``: the median of
+    the graph's instances of that class (their canonical extents), else the configured metric size."""
+    node = graph.rigid if cls == "rigid" else getattr(graph, "nonrigid", None)
+    if node is not None and node.num_instances > 0 and len(node.gaussians) > 0:
+        half = tt.half_extents(node.gaussians.means.detach().cpu().numpy(), node.instance.cpu().numpy(),
+                               node.num_instances)
+        half = half[(half > 0).all(1)]
+        if len(half):
+            return np.median(half, 0)
+    l, w, h = cfg.rigid_size_m if cls == "rigid" else cfg.nonrigid_size_m
+    return 0.5 * np.array([l, h, w]) * unit

@@ -1,0 +1,69 @@
+"""Tracking of topology candidates over the frames: held-out frames neither end a track nor break its run, and the
+fragments of one object are joined (``agg.train.topology_track``)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from agg.priors.kalman import smooth_sequence
+from agg.train.topology_track import TrackParams, drop_outliers, longest_run, stitch, track_clusters
+
+T = 20
+HELD_OUT = np.arange(T) % 5 == 4  # the NVS split: frames 4, 9, 14, 19 have no gradient statistics
+
+
+def _path(start, velocity, frames) -> np.ndarray:
+    """[T, 3] positions of a constant-velocity object, NaN outside ``frames``."""
+    z = np.full((T, 3), np.nan)
+    for t in frames:
+        z[t] = np.asarray(start, float) + np.asarray(velocity, float) * t
+    return z
+
+
+def _state(z: np.ndarray) -> np.ndarray:
+    return smooth_sequence(z, np.tile(np.eye(3) * 0.05 ** 2, (T, 1, 1)), accel_var=0.3 ** 2, init_vel_var=4.0)[0]
+
+
+def test_a_held_out_frame_neither_counts_nor_breaks_a_run():
+    hit = ~HELD_OUT
+    assert longest_run(hit) == (4, 0)
+    assert longest_run(hit, observed=~HELD_OUT) == (T - 4, 0)
+    hit[12] = False  # a real miss still breaks it
+    assert longest_run(hit, observed=~HELD_OUT) == (10, 0)  # 0-11 less 4 and 9
+
+
+def test_a_track_coasts_through_held_out_frames_without_a_miss():
+    z = _path([0, 0, 10], [0.8, 0, 0.1], range(T))
+    frames = [z[t][None] if not HELD_OUT[t] and t != 5 else np.zeros((0, 3)) for t in range(T)]  # 4 held out, 5 missed
+    params = TrackParams(meas_sigma=0.2, accel_sigma=0.3, init_vel_sigma=2.0, max_missed=1)
+    assert len([h for h in track_clusters(frames, params) if h.hits > 1]) == 2  # 4 and 5: two misses in a row
+    tracks = track_clusters(frames, params, observed=~HELD_OUT)
+    assert len(tracks) == 1 and tracks[0].hits == T - 5
+
+
+def test_fragments_of_one_object_are_stitched_and_other_objects_are_not():
+    car = dict(start=[0, 0, 10], velocity=[0.8, 0, 0.1])
+    front = _state(_path(**car, frames=range(0, 8)))
+    smear = _state(_path([1.2, 0, 10.5], car["velocity"], range(3, 10)))  # a second cluster on the same car
+    later = _state(_path(**car, frames=range(11, 18)))  # the track restarts after a 2-frame gap
+    neighbour = _state(_path([0, 0, 16], car["velocity"], range(0, 12)))  # the next lane over: 6 m away
+    turned = _state(_path([0, 0, 10], [0.8, 0, 1.2], range(11, 18)))  # off the car's path after the gap
+    far_later = _state(_path(**car, frames=range(16, 20)))  # the gap from `front` is 8 frames
+    states = [front, smear, later, neighbour, turned, far_later]
+    groups = stitch(states, [8, 7, 7, 12, 7, 4], merge_dist=2.5, max_gap=2, observed=~HELD_OUT)
+    as_sets = sorted(sorted(g) for g in groups)
+    assert [0, 1, 2, 5] in as_sets  # far_later joins through `later` (they overlap), not across 8 frames
+    assert [3] in as_sets and [4] in as_sets
+    assert stitch([front, far_later], [8, 4], merge_dist=2.5, max_gap=2, observed=~HELD_OUT) == [[0], [1]]
+    one_hit = stitch([front, smear], [8, 1], merge_dist=2.5, max_gap=2, observed=~HELD_OUT)
+    assert one_hit == [[0], [1]]  # one hit says nothing
+
+
+def test_a_centroid_metres_off_the_steady_path_is_dropped_and_jitter_is_kept():
+    rng = np.random.default_rng(0)
+    z = _path([0, 0, 10], [0.8, 0, 0.4], range(16)) + rng.normal(0, 0.15, (T, 3))
+    z[16:] = np.nan
+    z[12] += [0, 0, -3.0]  # a cluster that took in the smear in front of the car
+    kept = drop_outliers(z, meas_sigma=0.5, accel_sigma=0.05, init_vel_sigma=2.0, max_residual=1.0)
+    assert np.isnan(kept[12, 0])
+    assert np.count_nonzero(~np.isnan(kept[:, 0])) == 15
