@@ -39,10 +39,13 @@ class PoseConfig:
     init_max_forward_motion: float = 1.0
     init_min_tri_angle: float = 4.0
     refine_intrinsics: bool | None = None  # None: refine focal only when intrinsics were not given
-    num_threads: int = -1
+    num_threads: int = 1  # SIFT, matching and mapping. 1: the same clip gives bit-identical poses (pycolmap 4.2,
+    #                      fixed random_seed). -1 (all cores) is faster (51 KITTI frames, 2 cores: 91 s against
+    #                      128 s at full resolution, 25 s against 31 s at half) but each of the three stages then
+    #                      varies from run to run
     random_seed: int = 0
-    max_sfm_attempts: int = 4  # mapper runs (new seed each) while the bend check or registration fails: the
-    #                             multi-threaded mapper is not deterministic, and bent models (~25 deg) came back
+    max_sfm_attempts: int = 4  # mapper runs (new seed each) while the bend check or registration fails: with
+    #                             all cores the mapper was not deterministic, and bent models (~25 deg) came back
     #                             in about 1 of 4 runs on synthetic 320x192 clips
     sfm_timeout_s: float = 1800.0
     min_registered_fraction: float = 0.5  # below this, VO replaces SfM
@@ -57,8 +60,8 @@ class PoseConfig:
 
     @staticmethod
     def preset(name: str) -> "PoseConfig":
-        """"accurate": full resolution (~60 s for 51 KITTI frames on 2 cores); "fast": half resolution, at least
-        ``min_work_width`` pixels wide (SfM at 160x96 drifted 12 % of the path on synthetic 320x192 clips; at
+        """"accurate": full resolution (128 s for 51 KITTI frames on 2 cores, one thread); "fast": half
+        resolution, at least ``min_work_width`` pixels wide (SfM at 160x96 drifted 12 % of the path on synthetic 320x192 clips; at
         320x192 it stayed under 0.6 %)."""
         presets = {"accurate": PoseConfig(), "fast": PoseConfig(image_scale=0.5)}
         if name not in presets:
@@ -209,7 +212,9 @@ def _tracks(gray_a, others, K, dist, max_corners):  # noqa: N803
 def two_view_motion(gray_a, gray_b, K, dist=None, max_corners: int = 2000) -> dict:  # noqa: N803
     """Relative motion ``b_from_a`` (R [3,3], unit t [3]) from an OpenCV essential matrix on LK tracks.
 
-    Also returns the tracks (pixels, undistorted), the inlier mask, and the median flow (px).
+    Also returns the tracks (pixels, undistorted), the inlier mask, and the median flow (px). OpenCV's RANSAC
+    draws from a process-wide generator; it is reseeded here so a pair's answer does not depend on what ran
+    before it in the process.
     """
     import cv2
 
@@ -219,6 +224,7 @@ def two_view_motion(gray_a, gray_b, K, dist=None, max_corners: int = 2000) -> di
     if len(pa) < 8:
         return res
     res["flow"] = float(np.median(np.linalg.norm(pb - pa, axis=1)))
+    cv2.setRNGSeed(0)
     E, mask = cv2.findEssentialMat(pa, pb, K, method=cv2.RANSAC, prob=0.999, threshold=1.0)  # noqa: N806
     if E is None or E.shape != (3, 3):
         return res
