@@ -67,3 +67,52 @@ def test_a_centroid_metres_off_the_steady_path_is_dropped_and_jitter_is_kept():
     kept = drop_outliers(z, meas_sigma=0.5, accel_sigma=0.05, init_vel_sigma=2.0, max_residual=1.0)
     assert np.isnan(kept[12, 0])
     assert np.count_nonzero(~np.isnan(kept[:, 0])) == 15
+
+
+def test_match_boxes_take_the_tracklet_size_not_the_gaussians_spread():
+    """A car whose Gaussians spread 6 m (floaters after training) keeps its 4.6 m tracklet box for matching, so a
+    missed car 3.5 m beside it stays unmatched; an instance without a sized tracklet keeps the Gaussians' extent."""
+    import torch
+
+    from agg.io.bundle_priors import Tracklets
+    from agg.nodes.gaussians import GaussianParams
+    from agg.nodes.rigid import RigidAgents
+    from agg.train.topology import TopologyConfig, TopologyEvolution
+    from agg.train.topology_track import tracklet_half_extents
+
+    frames = 3
+    boxes = np.zeros((2, frames, 7))
+    boxes[0, :, 3:6] = [4.6, 1.8, 1.5]  # l, w, h
+    boxes[1, :, 3:6] = np.nan  # centre-only track
+    tracks = Tracklets(ids=np.array([1, 2]), classes=["rigid", "rigid"], boxes=boxes,
+                       valid=np.ones((2, frames), bool))
+    half = tracklet_half_extents(tracks)
+    assert set(half) == {1} and np.allclose(half[1], [2.3, 0.75, 0.9])  # box frame: x = l, y = h, z = w
+
+    rng = np.random.default_rng(0)
+    pts = np.concatenate([rng.uniform(-1, 1, (200, 3)) * [2.3, 0.75, 0.9],  # the car
+                          rng.uniform(-1, 1, (20, 3)) * [6.0, 1.0, 6.0],  # floaters
+                          rng.uniform(-1, 1, (50, 3))])  # instance 1
+    g = GaussianParams.from_points(pts, np.full((len(pts), 3), 0.5), 0, 0.5, scales=np.full(len(pts), 0.1))
+    inst = torch.tensor([0] * 220 + [1] * 50)
+    wfb = torch.eye(4).repeat(frames, 2, 1, 1)
+    wfb[:, 1, :3, 3] = torch.tensor([0.0, 0.0, 30.0])
+    node = RigidAgents(g, inst, wfb, torch.ones(frames, 2, dtype=torch.bool), torch.tensor([1, 2]))
+
+    class Graph:
+        def agent_nodes(self):
+            return [node]
+
+    cfg = TopologyConfig()
+    evo = TopologyEvolution(cfg, None, np.eye(3)[None], 32, 24, box_half=half)
+    (box,) = evo._agent_boxes(Graph())
+    assert np.allclose(box["half"][0], half[1] * (1 + cfg.match_margin))
+    assert box["half"][1][0] > 0.9 * (1 + cfg.match_margin)  # the Gaussians' 98 % quantile, about 1
+    missed = np.array([0.0, 0.0, 3.5])  # 3.5 m beside the car's centre, across its width
+    assert evo._match([box], 0, missed) is None
+    blind = TopologyEvolution(cfg, None, np.eye(3)[None], 32, 24)
+    assert blind._match(blind._agent_boxes(Graph()), 0, missed) == (0, 0)  # what the floaters did
+    state = evo.state_dict()
+    again = TopologyEvolution(cfg, None, np.eye(3)[None], 32, 24)
+    again.load_state_dict(state)
+    assert np.allclose(again.box_half[1], half[1])

@@ -84,23 +84,29 @@ def plan_spawns(evo, graph, unmatched: list[list[dict]], means: np.ndarray, take
         fallback = tt.ground_axis_yaw(means[rows])
         nonrigid = float(np.mean([c["nonrigid"] for _, c in clusters]))
         cls = "non-rigid" if nonrigid > 0.5 else "rigid"
-        half = spawn_half(graph, cls, cfg, u)
+        half = spawn_half(graph, cls, cfg, u, evo.box_half)
         poses, valid = tt.spawn_trajectory(
             state, centroids, cam_centres, half, in_view, fallback, meas_sigma=params.meas_sigma,
             accel_sigma=cfg.smooth_accel_sigma_m * u, init_vel_sigma=params.init_vel_sigma,
             min_speed=cfg.min_speed_m * u, extend=cfg.extend_frames, evidence=evidence_for(half))
         frame_of = tt.nearest_frame(means[rows], rows, [(t, c["members"]) for t, c in clusters], poses)
         claimed[rows] = True
-        plans.append({"rows": rows, "frame_of": frame_of, "poses": poses, "valid": valid, "class": cls})
+        plans.append({"rows": rows, "frame_of": frame_of, "poses": poses, "valid": valid, "class": cls,
+                      "half": half})
     # the longest run of each (joined) track over the frames with statistics, longest first
     report["track_runs"] = sorted(runs, reverse=True)[:8]
     return plans
 
 
-def spawn_half(graph, cls: str, cfg, unit: float) -> np.ndarray:
-    """Box-frame half extents (x = l, y = h, z = w) assumed for a new agent of class ``cls``: the median of
-    the graph's instances of that class (their canonical extents), else the configured metric size."""
+def spawn_half(graph, cls: str, cfg, unit: float, box_half: dict | None = None) -> np.ndarray:
+    """Box-frame half extents (x = l, y = h, z = w) assumed for a new agent of class ``cls``: the median box of
+    the graph's instances of that class whose size is known (``box_half``: track id -> [3]), else the median of
+    their canonical extents, else the configured metric size."""
     node = graph.rigid if cls == "rigid" else getattr(graph, "nonrigid", None)
+    known = [box_half[int(t)] for t in node.track_ids.tolist() if int(t) in box_half] if node is not None and \
+        box_half else []
+    if known:
+        return np.median(np.stack(known), 0)
     if node is not None and node.num_instances > 0 and len(node.gaussians) > 0:
         half = tt.half_extents(node.gaussians.means.detach().cpu().numpy(), node.instance.cpu().numpy(),
                                node.num_instances)

@@ -109,6 +109,23 @@ def half_extents(canonical_means: np.ndarray, instance: np.ndarray, k: int, quan
     return np.maximum(out, minimum)
 
 
+def tracklet_half_extents(tracklets) -> dict[int, np.ndarray]:
+    """{track id: [3] box-frame half extents (x = l, y = h, z = w)} from the median size of each tracklet's valid
+    boxes; centre-only tracks (NaN sizes) are left out."""
+    out: dict[int, np.ndarray] = {}
+    if tracklets is None:
+        return out
+    for k, tid in enumerate(np.asarray(tracklets.ids).tolist()):
+        valid = np.asarray(tracklets.valid[k], bool)
+        if not valid.any():
+            continue
+        lhw = np.asarray(tracklets.boxes[k], np.float64)[valid][:, [3, 5, 4]]  # [n, 3] l, h, w
+        half = 0.5 * np.nanmedian(np.where(np.isfinite(lhw), lhw, np.nan), 0) if np.isfinite(lhw).any() else None
+        if half is not None and np.all(np.isfinite(half) & (half > 0)):
+            out[int(tid)] = half
+    return out
+
+
 def inside_box(points: np.ndarray, world_from_box: np.ndarray, half: np.ndarray) -> np.ndarray:
     """[M] bool: world points [M, 3] inside the box ``world_from_box`` [4, 4] of half extents [3]."""
     local = (points - world_from_box[:3, 3]) @ world_from_box[:3, :3]  # R^T (p - c)

@@ -90,6 +90,7 @@ class Trainer:
             return None
         from agg.train.data import resize_depth
         from agg.train.topology import TopologyConfig, TopologyEvolution
+        from agg.train.topology_track import tracklet_half_extents
 
         depth = resize_depth(b.dense_depth, self.data.width, self.data.height) if b.has("depth_dense") else None
         ids = [int(i) for i in b.tracklets.ids] if b.tracklets is not None else []
@@ -97,7 +98,8 @@ class Trainer:
                    if b.has("dynamic_masks") else None)
         return TopologyEvolution(TopologyConfig().scaled(self.cfg.scale), b.semantics, self.data.K.numpy(),
                                  self.data.width, self.data.height, b.scale,
-                                 depth=depth, reserved_ids=ids, dynamic=dynamic)
+                                 depth=depth, reserved_ids=ids, dynamic=dynamic,
+                                 box_half=tracklet_half_extents(b.tracklets))
 
     def _lr_scale(self) -> float:
         """Pose-rate factor 30000 / iterations, at most 15 (the balanced preset's): below ~2,000 iterations a
