@@ -24,8 +24,9 @@ to 4, those behind correctly modelled agents ~0.1 to 0.8.
 front of the prior depth when ``depth`` is given: occluded Gaussians are no evidence), with ``r_t > tau_pos``
 and an agent-like feature F_t(g) (``topology_track.agent_like``); DBSCAN over their world means (``eps_m`` metres
 -> scene units with the bundle's ``scale``, ``metric = scale * scene_units``). A cluster whose centroid lies in an
-existing agent instance's box at frame t (``world_from_box(t)``, half extents = 98% quantile of its canonical
-Gaussians' |coordinates| grown by ``match_margin``) is matched: its Gaussians inside that box move from the
+existing agent instance's box at frame t (``world_from_box(t)``, half extents = its tracklet's median box size,
+or a spawned agent's own box, else the 98% quantile of its canonical Gaussians' |coordinates|; grown by
+``match_margin``) is matched: its Gaussians inside that box move from the
 background to the instance, into the canonical frame with ``inv(world_from_box(t))`` of the frame (among those
 where it matched) in which it sits most centrally in the box. Unmatched cluster centres are tracked over the
 frames with constant-velocity Kalman filters (the centre is the opacity-weighted centroid of the members on the
