@@ -61,8 +61,8 @@ class PoseConfig:
     @staticmethod
     def preset(name: str) -> "PoseConfig":
         """"accurate": full resolution (128 s for 51 KITTI frames on 2 cores, one thread); "fast": half
-        resolution, at least ``min_work_width`` pixels wide (SfM at 160x96 drifted 12 % of the path on synthetic 320x192 clips; at
-        320x192 it stayed under 0.6 %)."""
+        resolution, at least ``min_work_width`` pixels wide (SfM at 160x96 drifted 12 % of the path on synthetic
+        320x192 clips; at 320x192 it stayed under 0.6 %)."""
         presets = {"accurate": PoseConfig(), "fast": PoseConfig(image_scale=0.5)}
         if name not in presets:
             raise PoseEstimationError(f"unknown preset {name!r}; choose from {sorted(presets)}")

@@ -103,8 +103,8 @@ def spawn_half(graph, cls: str, cfg, unit: float, box_half: dict | None = None) 
     the graph's instances of that class whose size is known (``box_half``: track id -> [3]), else the median of
     their canonical extents, else the configured metric size."""
     node = graph.rigid if cls == "rigid" else getattr(graph, "nonrigid", None)
-    known = [box_half[int(t)] for t in node.track_ids.tolist() if int(t) in box_half] if node is not None and \
-        box_half else []
+    ids = node.track_ids.tolist() if node is not None else []
+    known = [box_half[int(t)] for t in ids if box_half and int(t) in box_half]  # sizes from tracklets or spawns
     if known:
         return np.median(np.stack(known), 0)
     if node is not None and node.num_instances > 0 and len(node.gaussians) > 0:

@@ -120,8 +120,10 @@ def tracklet_half_extents(tracklets) -> dict[int, np.ndarray]:
         if not valid.any():
             continue
         lhw = np.asarray(tracklets.boxes[k], np.float64)[valid][:, [3, 5, 4]]  # [n, 3] l, h, w
-        half = 0.5 * np.nanmedian(np.where(np.isfinite(lhw), lhw, np.nan), 0) if np.isfinite(lhw).any() else None
-        if half is not None and np.all(np.isfinite(half) & (half > 0)):
+        if np.isnan(lhw).all():
+            continue
+        half = 0.5 * np.nanmedian(lhw, 0)  # [3]
+        if np.all(np.isfinite(half) & (half > 0)):
             out[int(tid)] = half
     return out
 
