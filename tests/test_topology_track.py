@@ -116,3 +116,49 @@ def test_match_boxes_take_the_tracklet_size_not_the_gaussians_spread():
     again = TopologyEvolution(cfg, None, np.eye(3)[None], 32, 24)
     again.load_state_dict(state)
     assert np.allclose(again.box_half[1], half[1])
+
+
+def test_project_and_backproject_are_inverse():
+    from agg.train.topology_track import backproject, project
+
+    rng = np.random.default_rng(1)
+    K = np.array([[200.0, 0, 160], [0, 210, 96], [0, 0, 1]])  # noqa: N806
+    a = np.deg2rad(10)
+    cfw = np.eye(4)
+    cfw[:3, :3] = [[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]]
+    cfw[:3, 3] = [0.5, -0.2, 1.0]
+    pts = rng.uniform([-3, -1, 8], [3, 1, 30], (50, 3))
+    uv, z, _ = project(pts, cfw, K, 320, 192, 0.1)
+    assert np.allclose(backproject(uv, z, cfw, K), pts, atol=1e-9)
+
+
+def test_a_smeared_cluster_is_placed_where_the_frame_sees_it():
+    """Background Gaussians smeared 1.5 m along the viewing ray behind and in front of a car's surface (all on the
+    observed surface within the 10 % tolerance at 20 m) are placed at the prior depth of their pixels, so the
+    centre does not lag the car; rows without depth keep their means."""
+    from types import SimpleNamespace
+
+    from agg.priors.prototypes import CLASS_NAMES
+    from agg.train.topology import TopologyConfig, TopologyEvolution
+
+    w, h, c = 64, 48, 4
+    K = np.array([[60.0, 0, 32], [0, 60, 24], [0, 0, 1]])  # noqa: N806
+    car = np.array([2.0, 0.0, 0.0, 0.0])  # an agent-like feature everywhere; the bank tells car from road
+    feats = np.tile(car, (1, 8, 8, 1)).astype(np.float32)
+    protos = {k: np.eye(c)[[3, 0, 1][i]][None] for i, k in enumerate(CLASS_NAMES)}
+    sem = SimpleNamespace(features=feats, prototypes=protos, prototype_space="pca")
+    depth = np.full((1, h, w), 20.0, np.float32)
+    depth[0, :, :8] = 0  # no depth on the left edge
+    evo = TopologyEvolution(TopologyConfig(), sem, K[None], w, h, depth=depth, num_frames=1)
+    rng = np.random.default_rng(0)
+    px = np.stack([rng.uniform(12, 52, 200), rng.uniform(10, 38, 200)], 1)
+    z = 20.0 + rng.uniform(-1.5, 1.5, 200)
+    means = np.concatenate([(px - [32, 24]) / 60 * z[:, None], z[:, None]], 1)
+    means = np.concatenate([means, [[-5.0, 0.0, 19.0]]])  # a row over the pixels without depth (u ~ 17 -> 0)
+    means[-1, 0] = (4 - 32) / 60 * 19.0
+    grad = np.ones(len(means))
+    grad[::4] = 10.0  # a quarter of them stand out (the last row too)
+    idx, _, surface, seen = evo._candidates(0, means, grad, np.eye(4))
+    assert len(idx) == 51 and surface.all()
+    assert np.allclose(seen[:-1, 2], 20.0, atol=1e-5) and np.allclose(seen[-1], means[-1])
+    assert abs(np.ptp(means[idx[:-1], 2])) > 2.5  # the smear the means would have averaged

@@ -1,6 +1,7 @@
 """Functional core of adaptive topology evolution (paper Sec. 3.3, Algorithm 1): no graph, no optimiser.
 
-- ``project``: world points -> pixels, camera depth and an in-image test (OpenCV pinhole).
+- ``project``: world points -> pixels, camera depth and an in-image test (OpenCV pinhole); ``backproject``: the
+  inverse (pixels at a z-depth -> world points).
 - ``sample_features`` / ``prototype_bank`` / ``agent_like``: the semantic filter. The features F_t are the bundle's
   low-resolution PCA features [h, w, C]; a point at pixel (u, v) of the training resolution reads the cell at
   ``((u + 0.5) w / W - 0.5, (v + 0.5) h / H - 0.5)`` (bilinear). A point is agent-like when its best cosine
@@ -42,6 +43,14 @@ def project(means: np.ndarray, camera_from_world: np.ndarray, K: np.ndarray, wid
     uv = (pc[:, :2] / zs[:, None]) @ K[:2, :2].T + K[:2, 2]  # [N, 2]
     vis = (z > near) & (uv[:, 0] >= -0.5) & (uv[:, 0] < width - 0.5) & (uv[:, 1] >= -0.5) & (uv[:, 1] < height - 0.5)
     return uv, z, vis
+
+
+def backproject(uv: np.ndarray, z: np.ndarray, camera_from_world: np.ndarray, K: np.ndarray  # noqa: N803
+                ) -> np.ndarray:
+    """World points [N, 3] seen at pixels uv [N, 2] with camera z-depth z [N] (the inverse of ``project``)."""
+    rays = np.concatenate([uv, np.ones((len(uv), 1))], 1) @ np.linalg.inv(K).T  # [N, 3], z = 1
+    pc = rays * np.asarray(z, np.float64)[:, None]  # [N, 3] camera frame
+    return (pc - camera_from_world[:3, 3]) @ camera_from_world[:3, :3]  # R^T (p - t)
 
 
 def depth_at(depth: np.ndarray, uv: np.ndarray, width: int, height: int) -> np.ndarray:
