@@ -30,6 +30,17 @@ class Tracklets:
     confidence: np.ndarray | None = None  # [K, T] float32 in [0, 1]
     labels: list[str] | None = None  # [K] free text
 
+    def box_size(self, k: int) -> np.ndarray:
+        """[3] median (l, h, w) of track row k's valid boxes, in box-frame axis order (x = l, y = h, z = w); NaN
+        where unknown (centre-only tracks, no valid frame)."""
+        valid = np.asarray(self.valid[k], bool)
+        if not valid.any():
+            return np.full(3, np.nan)
+        lhw = np.asarray(self.boxes[k], np.float64)[valid][:, [3, 5, 4]]  # [n, 3]
+        if np.isnan(lhw).all():
+            return np.full(3, np.nan)
+        return np.nanmedian(lhw, 0)
+
 
 @dataclass
 class SemanticFeatures:

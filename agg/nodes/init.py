@@ -166,7 +166,7 @@ def _agent_gaussians(rows: list[int], ag: dict, tracks, cfg: InitConfig, rng: np
         p = np.concatenate(ag[k][0]) if ag[k][0] else np.zeros((0, 3))
         c = np.concatenate(ag[k][1]) if ag[k][1] else np.zeros((0, 3))
         if len(p) < cfg.min_agent_points:  # fill the (median) box with uniform points
-            sizes = np.nanmedian(np.asarray(tracks.boxes[k])[np.asarray(tracks.valid[k])][:, [3, 5, 4]], 0)
+            sizes = tracks.box_size(k)
             sizes = np.where(np.isfinite(sizes), sizes, 0.05 * depth_med)
             p = (rng.random((cfg.min_agent_points * 4, 3)) - 0.5) * sizes
             c = np.broadcast_to(c.mean(0) if len(c) else np.full(3, 0.5), p.shape)

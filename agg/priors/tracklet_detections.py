@@ -12,6 +12,8 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 from scipy.ndimage import distance_transform_edt
+from scipy.sparse import csr_matrix
+from scipy.sparse.csgraph import connected_components
 
 from agg.priors.tracklet_ground import (FLOATING, GROUNDED, UNKNOWN, column_bottoms, column_medians,
                                         contact_verdicts, road_inverse_depth)
@@ -170,14 +172,7 @@ def _merge_parts(parts: list[Candidate], depth_of: list[float], cfg, depth: np.n
     where the depth prior sees the gap, it must be nearer than the parts (a pole, not the road between two cars).
     Parts of one mask component (cut at a neck or a depth edge on purpose) are not merged again."""
     n = len(parts)
-    parent = list(range(n))
-
-    def find(a: int) -> int:
-        while parent[a] != a:
-            parent[a] = parent[parent[a]]
-            a = parent[a]
-        return a
-
+    joined = np.zeros((n, n), bool)  # [n, n] pairs to merge (a < b)
     boxes = [(p.cols.min(), p.rows.min(), p.cols.max() + 1, p.rows.max() + 1) for p in parts]
     for a in range(n):
         for b in range(a + 1, n):
@@ -194,13 +189,11 @@ def _merge_parts(parts: list[Candidate], depth_of: list[float], cfg, depth: np.n
             near_y = gap_y <= cfg.merge_gap_fraction * min(ha, hb) and lap_x >= cfg.merge_min_overlap
             if (near_x or near_y) and _gap_in_front(boxes[a], boxes[b], near_x, depth, ok_map, mask,
                                                     min(da, db), cfg):
-                parent[find(b)] = find(a)
-    groups: dict[int, list[int]] = {}
-    for a in range(n):
-        groups.setdefault(find(a), []).append(a)
+                joined[a, b] = True
+    _, label = connected_components(csr_matrix(joined), directed=False)  # [n]
     out = []
-    for members in groups.values():
-        ps = [parts[a] for a in members]
+    for g in range(label.max(initial=-1) + 1):
+        ps = [parts[a] for a in np.flatnonzero(label == g)]
         out.append(Candidate(np.concatenate([p.rows for p in ps]), np.concatenate([p.cols for p in ps]),
                              sorted({lab for p in ps for lab in p.labels})))
     return out

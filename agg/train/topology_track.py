@@ -125,13 +125,7 @@ def tracklet_half_extents(tracklets) -> dict[int, np.ndarray]:
     if tracklets is None:
         return out
     for k, tid in enumerate(np.asarray(tracklets.ids).tolist()):
-        valid = np.asarray(tracklets.valid[k], bool)
-        if not valid.any():
-            continue
-        lhw = np.asarray(tracklets.boxes[k], np.float64)[valid][:, [3, 5, 4]]  # [n, 3] l, h, w
-        if np.isnan(lhw).all():
-            continue
-        half = 0.5 * np.nanmedian(lhw, 0)  # [3]
+        half = 0.5 * tracklets.box_size(k)  # [3]
         if np.all(np.isfinite(half) & (half > 0)):
             out[int(tid)] = half
     return out
