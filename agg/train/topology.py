@@ -33,9 +33,9 @@ frames with constant-velocity Kalman filters. A cluster's centre is where frame 
 centroid of its members' pixels back-projected at the prior depth (a member's own mean where there is none), over
 the members on the observed surface, ``|z - depth| <= surface_tolerance * depth``, when there are enough of them.
 A static background smears a moving car along its path, and the smear's own means lag the car: on seed 0 of the
-benchmark they put the track 2.3 m behind it by the last frame; the pixels and the depth of frame t do not lag. Frames without statistics (held out) neither end a
-track nor break its run; the fragments of one object are joined and its outlying centroids dropped
-(``topology_spawn``); a track with at least ``tau_life`` consecutive hits spawns a new rigid agent
+benchmark they put the track 2.3 m behind it by the last frame; the pixels and the depth of frame t do not lag.
+Frames without statistics (held out) neither end a track nor break its run; the fragments of one object are
+joined and its outlying centroids dropped (``topology_spawn``); a track with at least ``tau_life`` consecutive hits spawns a new rigid agent
 (``graph.rigid``, created when absent; the report's ``spawned_classes`` says what the features suggest): its
 Gaussians are the track's cluster Gaussians (those not reassigned), each moved into the
 canonical frame with the track pose of the frame (among those it was clustered in) whose centre is nearest; its
@@ -205,7 +205,7 @@ class TopologyEvolution:
 
     # ------------------------------------------------------------------ Algorithm 1
     def _candidates(self, frame: int, means: np.ndarray, grad: np.ndarray, camera_from_world: np.ndarray
-                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Candidate rows of frame ``frame`` (high gradient, in view, agent-like), their non-rigid flags, whether
         they lie on the observed surface (within ``surface_tolerance`` of the prior depth; all True without
         depth) and the world point [M, 3] each one shows in that frame: its pixel at the prior depth (its own
