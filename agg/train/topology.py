@@ -35,9 +35,9 @@ the members on the observed surface, ``|z - depth| <= surface_tolerance * depth`
 A static background smears a moving car along its path, and the smear's own means lag the car: on seed 0 of the
 benchmark they put the track 2.3 m behind it by the last frame; the pixels and the depth of frame t do not lag.
 Frames without statistics (held out) neither end a track nor break its run; the fragments of one object are
-joined and its outlying centroids dropped (``topology_spawn``); a track with at least ``tau_life`` consecutive hits spawns a new rigid agent
-(``graph.rigid``, created when absent; the report's ``spawned_classes`` says what the features suggest): its
-Gaussians are the track's cluster Gaussians (those not reassigned), each moved into the
+joined and its outlying centroids dropped (``topology_spawn``); a track with at least ``tau_life`` consecutive
+hits spawns a new rigid agent (``graph.rigid``, created when absent; the report's ``spawned_classes`` says what
+the features suggest): its Gaussians are the track's cluster Gaussians (those not reassigned), each moved into the
 canonical frame with the track pose of the frame (among those it was clustered in) whose centre is nearest; its
 pose prior is the track, its centroids moved from the visible surface to the box centre and RTS-smoothed again
 (``topology_track.spawn_trajectory``: a box of the graph's median agent size or ``rigid_size_m``, yaw from the
