@@ -360,15 +360,16 @@ class TopologyEvolution:
             report["candidates"] += len(idx)
             labels = tt.cluster(means[idx], cfg.eps_m * self.unit, cfg.min_samples)
             for c in range(labels.max(initial=-1) + 1):
-                members = idx[labels == c]
+                in_c = labels == c  # [M]
+                members = idx[in_c]
                 report["clusters"] += 1
-                on = surface[labels == c]
+                on = surface[in_c]
                 w = (opac[members] + 1e-6) * (on if on.sum() >= cfg.min_samples else 1.0)
-                centre = (seen[labels == c] * w[:, None]).sum(0) / w.sum()  # where the cluster is seen at t
+                centre = (seen[in_c] * w[:, None]).sum(0) / w.sum()  # where the cluster is seen at t
                 match = self._match(boxes, t, centre)
                 if match is None:
                     unmatched[t].append({"centre": centre, "members": members,
-                                         "nonrigid": float(nonrigid[labels == c].mean())})
+                                         "nonrigid": float(nonrigid[in_c].mean())})
                     continue
                 a, k = match
                 pose, half = boxes[a]["poses"][t, k], boxes[a]["half"][k]
