@@ -158,7 +158,7 @@ def test_a_smeared_cluster_is_placed_where_the_frame_sees_it():
     means = np.concatenate([means, [[(4 - 32) / 60 * 19.0, 0.0, 19.0]]])  # a row at u = 4, where there is no depth
     grad = np.ones(len(means))
     grad[::4] = 10.0  # a quarter of them stand out (the last row too)
-    idx, _, surface, seen = evo._candidates(0, means, grad, np.eye(4))
+    idx, _, surface, seen, _ = evo._candidates(0, means, grad, np.eye(4))
     assert len(idx) == 51 and surface.all()
     assert np.allclose(seen[:-1, 2], 20.0, atol=1e-5) and np.allclose(seen[-1], means[-1])
     assert np.ptp(means[idx[:-1], 2]) > 2.5  # the smear the means would have averaged

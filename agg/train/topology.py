@@ -205,11 +205,12 @@ class TopologyEvolution:
 
     # ------------------------------------------------------------------ Algorithm 1
     def _candidates(self, frame: int, means: np.ndarray, grad: np.ndarray, camera_from_world: np.ndarray
-                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Candidate rows of frame ``frame`` (high gradient, in view, agent-like), their non-rigid flags, whether
         they lie on the observed surface (within ``surface_tolerance`` of the prior depth; all True without
-        depth) and the world point [M, 3] each one shows in that frame: its pixel at the prior depth (its own
-        mean where there is no depth)."""
+        depth), the world point [M, 3] each one shows in that frame (its pixel at the prior depth; its own mean
+        where there is no depth) and whether that pixel lies in the prior dynamic masks, i.e. on a known agent
+        (all False without masks)."""
         cfg = self.config
         K = self.K[min(frame, len(self.K) - 1)]  # noqa: N806
         uv, z, vis = tt.project(means, camera_from_world, K, self.width, self.height, cfg.near_m * self.unit)
@@ -220,7 +221,7 @@ class TopologyEvolution:
             vis &= (d <= 0) | (z <= d * (1 + cfg.surface_tolerance))
             surface = (d <= 0) | (np.abs(z - d) <= cfg.surface_tolerance * d)
         moving = vis & (grad > 0)
-        none = np.zeros(0, np.int64), np.zeros(0, bool), np.zeros(0, bool), np.zeros((0, 3))
+        none = np.zeros(0, np.int64), np.zeros(0, bool), np.zeros(0, bool), np.zeros((0, 3)), np.zeros(0, bool)
         if not moving.any():
             return none
         ref = float(np.median(grad[moving]))
@@ -233,7 +234,12 @@ class TopologyEvolution:
         seen = means[idx].copy()  # [M, 3]
         has = d[idx] > 0
         seen[has] = tt.backproject(uv[idx[has]], d[idx[has]], camera_from_world, K)
-        return idx, nonrigid[ag], surface[idx], seen
+        known = np.zeros(len(idx), bool)
+        if self.dynamic is not None:
+            col = np.clip(np.round(uv[idx, 0]).astype(np.int64), 0, self.width - 1)
+            row = np.clip(np.round(uv[idx, 1]).astype(np.int64), 0, self.height - 1)
+            known = self.dynamic[frame, row, col]
+        return idx, nonrigid[ag], surface[idx], seen, known
 
     def _agent_boxes(self, graph) -> list[dict]:
         """Per agent node: poses [T, K, 4, 4], valid [T, K], grown half extents [K, 3]."""
@@ -356,16 +362,14 @@ class TopologyEvolution:
             if not has[t]:
                 continue
             grad = (self.sum[t] / self.count[t]).cpu().numpy()  # [N] mean gradient norm in frame t
-            idx, nonrigid, surface, seen = self._candidates(t, means, grad, cfw[t])
+            idx, nonrigid, surface, seen, known = self._candidates(t, means, grad, cfw[t])
             report["candidates"] += len(idx)
             labels = tt.cluster(means[idx], cfg.eps_m * self.unit, cfg.min_samples)
             for c in range(labels.max(initial=-1) + 1):
                 in_c = labels == c  # [M]
                 members = idx[in_c]
                 report["clusters"] += 1
-                on = surface[in_c]
-                w = (opac[members] + 1e-6) * (on if on.sum() >= cfg.min_samples else 1.0)
-                centre = (seen[in_c] * w[:, None]).sum(0) / w.sum()  # where the cluster is seen at t
+                centre = tt.cluster_centre(seen[in_c], opac[members], surface[in_c], known[in_c], cfg.min_samples)
                 match = self._match(boxes, t, centre)
                 if match is None:
                     unmatched[t].append({"centre": centre, "members": members,

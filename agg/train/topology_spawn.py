@@ -41,6 +41,10 @@ def plan_spawns(evo, graph, unmatched: list[list[dict]], means: np.ndarray, take
         k = evo.K[min(i, len(evo.K) - 1)]
         return bool(tt.project(centre[None], cfw[i], k, evo.width, evo.height, cfg.near_m * u)[2][0])
 
+    def in_image(i: int, points: np.ndarray) -> np.ndarray:
+        k = evo.K[min(i, len(evo.K) - 1)]
+        return tt.project(points, cfw[i], k, evo.width, evo.height, cfg.near_m * u)[2]
+
     def evidence_for(half: np.ndarray):
         def evidence(i: int, centre: np.ndarray) -> bool:
             """Agent-like features around the box centre's pixel (a square of the box's half height), off
@@ -88,7 +92,7 @@ def plan_spawns(evo, graph, unmatched: list[list[dict]], means: np.ndarray, take
         poses, valid = tt.spawn_trajectory(
             state, centroids, cam_centres, half, in_view, fallback, meas_sigma=params.meas_sigma,
             accel_sigma=cfg.smooth_accel_sigma_m * u, init_vel_sigma=params.init_vel_sigma,
-            min_speed=cfg.min_speed_m * u, extend=cfg.extend_frames, evidence=evidence_for(half))
+            min_speed=cfg.min_speed_m * u, extend=cfg.extend_frames, evidence=evidence_for(half), in_image=in_image)
         frame_of = tt.nearest_frame(means[rows], rows, [(t, c["members"]) for t, c in clusters], poses)
         claimed[rows] = True
         plans.append({"rows": rows, "frame_of": frame_of, "poses": poses, "valid": valid, "class": cls,
