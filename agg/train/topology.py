@@ -31,7 +31,8 @@ background to the instance, into the canonical frame with ``inv(world_from_box(t
 where it matched) in which it sits most centrally in the box. Unmatched cluster centres are tracked over the
 frames with constant-velocity Kalman filters. A cluster's centre is where frame t sees it: the opacity-weighted
 centroid of its members' pixels back-projected at the prior depth (a member's own mean where there is none), over
-the members on the observed surface, ``|z - depth| <= surface_tolerance * depth``, when there are enough of them.
+the members on the observed surface, ``|z - depth| <= surface_tolerance * depth``, whose pixel is on no known
+agent (outside the prior dynamic masks), when there are enough of them (``topology_track.cluster_centre``).
 A static background smears a moving car along its path, and the smear's own means lag the car: on seed 0 of the
 benchmark they put the track 2.3 m behind it by the last frame; the pixels and the depth of frame t do not lag.
 Frames without statistics (held out) neither end a track nor break its run; the fragments of one object are
@@ -41,7 +42,9 @@ the features suggest): its Gaussians are the track's cluster Gaussians (those no
 canonical frame with the track pose of the frame (among those it was clustered in) whose centre is nearest; its
 pose prior is the track, its centroids moved from the visible surface to the box centre and RTS-smoothed again
 (``topology_track.spawn_trajectory``: a box of the graph's median agent size or ``rigid_size_m``, yaw from the
-ground velocity); its track id is one more than every id seen so far (never reused).
+ground velocity, its surface weighted by solid angle, and Gauss-Newton passes that leave out the part of the box
+outside the image, for a car cut off by the image edge); its track id is one more than every id seen so far
+(never reused).
 **Pruning**: an instance whose ``prune_quantile`` opacity quantile is below ``prune_opacity`` or that has fewer
 than ``min_agent_gaussians`` Gaussians is removed (before matching, so dead agents absorb nothing). A false agent
 that does not die out (it keeps rendering the road it was initialised on) is **demoted** when it is static and not
