@@ -97,7 +97,7 @@ def _run(args, name: str, input_path, preset: str, row: dict, **kwargs) -> dict 
     summary = reconstruct(input_path, work / "scenes" / name, preset, resume=False, **kwargs)
     row = {**row, "preset": preset, "wall_s": round(time.perf_counter() - t0, 1), "metrics": summary.get("metrics"),
            "summary": summary}
-    if row["kind"] == "synth":
+    if row["kind"] in ("synth", "preset"):  # synthetic bundles: score the missed and false agents
         row["topology"] = topology_scores(work / "scenes" / name, input_path)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(row, indent=1))

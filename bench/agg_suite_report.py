@@ -156,7 +156,7 @@ def plots(runs: list[dict], docs: Path) -> list[str]:
         for r in presets:
             ax.scatter(r["summary"]["seconds_train"], r["metrics"]["psnr"], s=20 + r["metrics"]["n_gaussians"] / 1000)
             ax.annotate(r["preset"], (r["summary"]["seconds_train"], r["metrics"]["psnr"]))
-        ax.set_xlabel("training time (s, 2 CPU cores)")
+        ax.set_xlabel("training time (s; one thread, beside one other run on 2 cores)")
         ax.set_ylabel("NVS PSNR (dB)")
         ax.set_title("presets (marker size: Gaussians)")
         ax.grid(alpha=0.3)
