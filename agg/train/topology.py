@@ -237,11 +237,8 @@ class TopologyEvolution:
         seen = means[idx].copy()  # [M, 3]
         has = d[idx] > 0
         seen[has] = tt.backproject(uv[idx[has]], d[idx[has]], camera_from_world, K)
-        known = np.zeros(len(idx), bool)
-        if self.dynamic is not None:
-            col = np.clip(np.round(uv[idx, 0]).astype(np.int64), 0, self.width - 1)
-            row = np.clip(np.round(uv[idx, 1]).astype(np.int64), 0, self.height - 1)
-            known = self.dynamic[frame, row, col]
+        known = (np.zeros(len(idx), bool) if self.dynamic is None
+                 else tt.pixel_at(self.dynamic[frame], uv[idx], self.width, self.height))
         return idx, nonrigid[ag], surface[idx], seen, known
 
     def _agent_boxes(self, graph) -> list[dict]:

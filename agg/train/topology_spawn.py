@@ -37,13 +37,12 @@ def plan_spawns(evo, graph, unmatched: list[list[dict]], means: np.ndarray, take
     n_frames = len(cfw)
     r = np.tile(np.eye(3) * params.meas_sigma ** 2, (n_frames, 1, 1))  # [T, 3, 3]
 
-    def in_view(i: int, centre: np.ndarray) -> bool:
-        k = evo.K[min(i, len(evo.K) - 1)]
-        return bool(tt.project(centre[None], cfw[i], k, evo.width, evo.height, cfg.near_m * u)[2][0])
-
     def in_image(i: int, points: np.ndarray) -> np.ndarray:
         k = evo.K[min(i, len(evo.K) - 1)]
         return tt.project(points, cfw[i], k, evo.width, evo.height, cfg.near_m * u)[2]
+
+    def in_view(i: int, centre: np.ndarray) -> bool:
+        return bool(in_image(i, centre[None])[0])
 
     def evidence_for(half: np.ndarray):
         def evidence(i: int, centre: np.ndarray) -> bool:

@@ -53,11 +53,16 @@ def backproject(uv: np.ndarray, z: np.ndarray, camera_from_world: np.ndarray, K:
     return (pc - camera_from_world[:3, 3]) @ camera_from_world[:3, :3]  # R^T (p - t)
 
 
-def depth_at(depth: np.ndarray, uv: np.ndarray, width: int, height: int) -> np.ndarray:
-    """[N] prior depth (0 = none) of a [height, width] depth map at the nearest pixel of each uv [N, 2]."""
+def pixel_at(image: np.ndarray, uv: np.ndarray, width: int, height: int) -> np.ndarray:
+    """[N] values of a [height, width] image at the nearest pixel of each uv [N, 2] (clamped to the image)."""
     ui = np.clip(np.rint(uv[:, 0]), 0, width - 1).astype(np.int64)
     vi = np.clip(np.rint(uv[:, 1]), 0, height - 1).astype(np.int64)
-    return np.asarray(depth, np.float32)[vi, ui]
+    return np.asarray(image)[vi, ui]
+
+
+def depth_at(depth: np.ndarray, uv: np.ndarray, width: int, height: int) -> np.ndarray:
+    """[N] prior depth (0 = none) of a [height, width] depth map at the nearest pixel of each uv [N, 2]."""
+    return pixel_at(np.asarray(depth, np.float32), uv, width, height)
 
 
 def sample_features(features: np.ndarray, uv: np.ndarray, width: int, height: int) -> np.ndarray:
