@@ -164,10 +164,22 @@ def test_a_smeared_cluster_is_placed_where_the_frame_sees_it():
     assert np.ptp(means[idx[:-1], 2]) > 2.5  # the smear the means would have averaged
 
 
-def _box_samples(centre: np.ndarray, yaw: float, half: np.ndarray, K: np.ndarray, w: int, h: int,  # noqa: N803
-                 n: int = 400_000) -> np.ndarray:
+# a 160 x 96 camera at the origin looking along +z, and a car's half extents (l, h, w), for the surface-model tests
+CAM_W, CAM_H = 160, 96
+CAM_K = np.array([[80.0, 0, 79.5], [0, 80, 47.5], [0, 0, 1]])
+CAR_HALF = np.array([2.1, 0.8, 0.9])
+
+
+def _in_image(points: np.ndarray) -> np.ndarray:
+    """Which world points [P, 3] that camera's image holds."""
+    from agg.train.topology_track import project
+
+    return project(points, np.eye(4), CAM_K, CAM_W, CAM_H, 0.3)[2]
+
+
+def _box_samples(centre: np.ndarray, yaw: float, n: int = 400_000) -> np.ndarray:
     """World points [P, 3] where rays spread uniformly over the sphere of directions (a Fibonacci lattice, so by
-    solid angle) hit one box, keeping the rays inside the image of a camera at the origin looking along +z:
+    solid angle) hit a car's box, keeping the rays inside the image of the camera above:
     how densified Gaussians sample a surface (module doc of ``visible_surface_offset``). Ray-cast with the
     synthetic renderer's slab test."""
     from agg.synth.raycast import intersect_boxes_dense
@@ -177,8 +189,8 @@ def _box_samples(centre: np.ndarray, yaw: float, half: np.ndarray, K: np.ndarray
     i = np.arange(n) + 0.5
     polar, azimuth = np.arccos(1 - 2 * i / n), np.pi * (1 + 5 ** 0.5) * i
     rays = np.stack([np.cos(azimuth) * np.sin(polar), np.sin(azimuth) * np.sin(polar), np.cos(polar)], 1)
-    rays = rays[project(rays, np.eye(4), K, w, h, 1e-3)[2]]
-    boxes = BoxSet(pose_from_yaw(centre, yaw)[None], half[None], np.zeros(1, int), np.zeros((1, 3)),
+    rays = rays[project(rays, np.eye(4), CAM_K, CAM_W, CAM_H, 1e-3)[2]]
+    boxes = BoxSet(pose_from_yaw(centre, yaw)[None], CAR_HALF[None], np.zeros(1, int), np.zeros((1, 3)),
                    np.zeros(1, int), np.ones(1, int))
     t, idx, *_ = intersect_boxes_dense(np.zeros(3), rays, boxes)
     return rays[idx >= 0] * t[idx >= 0, None]
@@ -188,46 +200,32 @@ def test_the_visible_surface_model_matches_a_box_sampled_by_solid_angle_also_at_
     """The centroid of a box's surface sampled by solid angle, only the part in view, is what ``visible_centroid``
     predicts, for a car 7 m ahead seen in full and for one half out of the image at the right edge; leaving the
     image edge out would miss the second by more than half a metre."""
-    from agg.train.topology_track import project, visible_centroid
+    from agg.train.topology_track import visible_centroid
 
-    w, h = 160, 96
-    K = np.array([[80.0, 0, 79.5], [0, 80, 47.5], [0, 0, 1]])  # noqa: N806
-    half = np.array([2.1, 0.8, 0.9])  # a car: l, h, w
     yaw = 0.3
-
-    def in_image(p):
-        return project(p, np.eye(4), K, w, h, 0.3)[2]
-
     for centre in (np.array([1.0, 0.7, 7.0]), np.array([6.5, 0.7, 7.5])):
-        seen = _box_samples(centre, yaw, half, K, w, h).mean(0)
-        assert np.linalg.norm(visible_centroid(centre, yaw, half, np.zeros(3), in_image) - seen) < 0.05
-    assert np.linalg.norm(visible_centroid(centre, yaw, half, np.zeros(3)) - seen) > 0.5  # the cut-off car
+        seen = _box_samples(centre, yaw).mean(0)
+        assert np.linalg.norm(visible_centroid(centre, yaw, CAR_HALF, np.zeros(3), _in_image) - seen) < 0.05
+    assert np.linalg.norm(visible_centroid(centre, yaw, CAR_HALF, np.zeros(3)) - seen) > 0.5  # the cut-off car
 
 
 def test_a_car_leaving_at_the_image_edge_is_placed_by_its_track():
     """A car drives 0.6 m per frame to the right until half of it has left the image. Read from the centroid of
     its surface with the whole box assumed visible, its centre drifts ahead of it as it leaves; with the image
     edges in the model (Gauss-Newton passes) it stays within 0.2 m on every frame."""
-    from agg.train.topology_track import project, spawn_trajectory, yaw_from_heading
+    from agg.train.topology_track import spawn_trajectory, yaw_from_heading
 
-    w, h = 160, 96
-    K = np.array([[80.0, 0, 79.5], [0, 80, 47.5], [0, 0, 1]])  # noqa: N806
-    half = np.array([2.1, 0.8, 0.9])
     n = 12
     truth = np.array([[1.0 + 0.6 * i, 0.7, 8.0] for i in range(n)])  # [T, 3]
     yaw = yaw_from_heading(1.0, 0.0)
-    centroids = {i: _box_samples(truth[i], yaw, half, K, w, h).mean(0) for i in range(n)}
+    centroids = {i: _box_samples(truth[i], yaw).mean(0) for i in range(n)}
     state, _ = smooth_sequence(np.stack([centroids[i] for i in range(n)]), np.tile(np.eye(3) * 0.25, (n, 1, 1)),
                                accel_var=0.3 ** 2, init_vel_var=4.0)
     kw = {"meas_sigma": 0.5, "accel_sigma": 0.05, "init_vel_sigma": 2.0, "min_speed": 0.05, "extend": 2}
-
-    def in_image(t, p):
-        return project(p, np.eye(4), K, w, h, 0.3)[2]
-
-    cams = np.zeros((n, 3))
-    args = (state, centroids, cams, half, lambda t, c: True, 0.0)
+    args = (state, centroids, np.zeros((n, 3)), CAR_HALF, lambda t, c: True, 0.0)
     without = np.linalg.norm(spawn_trajectory(*args, **kw)[0][:, :3, 3] - truth, axis=1)
-    with_edges = np.linalg.norm(spawn_trajectory(*args, **kw, in_image=in_image)[0][:, :3, 3] - truth, axis=1)
+    with_edges = spawn_trajectory(*args, **kw, in_image=lambda t, p: _in_image(p))[0][:, :3, 3]
+    with_edges = np.linalg.norm(with_edges - truth, axis=1)
     assert with_edges.max() < 0.2, with_edges
     assert without.max() > 0.5, without
 
