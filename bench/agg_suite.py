@@ -84,6 +84,27 @@ def topology_scores(scene_dir: Path, bundle_path: Path) -> dict:
     return out
 
 
+def camera_scores(scene_dir: Path, bundle_path: Path) -> dict:
+    """Camera-centre error against ground truth (metres) of the priors and of the refined cameras, over the
+    training frames: mean, median, max."""
+    import torch
+
+    from agg.graph import SceneGraph
+    from agg.io.bundle import SceneBundle
+
+    b = SceneBundle.load(bundle_path)
+    meta = json.loads((scene_dir / "scene.json").read_text())
+    state = torch.load(scene_dir / "model.pt", map_location="cpu", weights_only=False)
+    with torch.no_grad():
+        refined = SceneGraph.from_state(state["graph"]).camera.world_from_camera().numpy()  # [T, 4, 4]
+    gt, frames = b.gt.world_from_camera, meta["train_frames"]
+    out = {}
+    for name, poses in (("prior", b.world_from_camera), ("refined", refined)):
+        e = np.linalg.norm(poses[frames, :3, 3] - gt[frames, :3, 3], axis=1)
+        out[name] = {"mean_m": float(e.mean()), "median_m": float(np.median(e)), "max_m": float(e.max())}
+    return out
+
+
 def _run(args, name: str, input_path, preset: str, row: dict, **kwargs) -> dict | None:
     """Reconstruct ``input_path`` into work/scenes/NAME and record work/runs/NAME.json (``row`` plus wall time,
     metrics and summary); None when that record exists and ``--force`` is off."""
@@ -99,6 +120,7 @@ def _run(args, name: str, input_path, preset: str, row: dict, **kwargs) -> dict 
            "summary": summary}
     if row["kind"] in ("synth", "preset"):  # synthetic bundles: score the missed and false agents
         row["topology"] = topology_scores(work / "scenes" / name, input_path)
+        row["cameras"] = camera_scores(work / "scenes" / name, input_path)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(row, indent=1))
     print(name, f"{row['wall_s']} s", "PSNR", row["metrics"]["psnr"], "agents", row["metrics"]["psnr_agents"],

@@ -13,6 +13,7 @@ from agg.io.bundle import SceneBundle
 from agg.synth.corrupt import NoiseConfig
 from agg.synth.scene import SceneConfig
 from agg.synth.suite import generate, write_bundle
+from agg.train.camera_tracking import TrackingConfig
 from agg.train.config import get_preset
 from agg.train.data import load_train_data
 from agg.train.tick_tock import Phase, TickTockSchedule
@@ -88,8 +89,11 @@ def test_an_optimiser_step_in_tick_leaves_agents_bit_identical(bundle):
 
 
 def test_resume_reproduces_the_uninterrupted_loss_curve_and_cancellation_is_cooperative(bundle, tmp_path):
-    # 44 iterations cross the warm-up, Tick, Tock, joint phases and two densification refines of the tiny preset
-    full = _trainer(bundle, iterations=44, ablate=frozenset({"topology"}), densify_from=300, densify_every=300)
+    # 44 iterations cross the warm-up, Tick, Tock, joint phases, two densification refines of the tiny preset and
+    # two camera-tracking rounds (iterations 15 and 29), one on each side of the cancel at 23
+    kw = {"ablate": frozenset({"topology"}), "densify_from": 300, "densify_every": 300,
+          "tracking": TrackingConfig(at=(10_000, 20_000), levels=(4,), steps=2)}
+    full = _trainer(bundle, iterations=44, **kw)
     full.run()
     ckpt = tmp_path / "ckpt.pt"
     calls = {"n": 0}
@@ -99,7 +103,7 @@ def test_resume_reproduces_the_uninterrupted_loss_curve_and_cancellation_is_coop
         return calls["n"] > 23
 
     events = []
-    first = _trainer(bundle, iterations=44, ablate=frozenset({"topology"}), densify_from=300, densify_every=300)
+    first = _trainer(bundle, iterations=44, **kw)
     first.should_stop, first.progress = stop, events.append
     with pytest.raises(Cancelled):
         first.run(ckpt, checkpoint_every=0)
@@ -115,6 +119,8 @@ def test_resume_reproduces_the_uninterrupted_loss_curve_and_cancellation_is_coop
     assert [r["phase"] for r in full.history] == [r["phase"] for r in resumed.history]
     torch.testing.assert_close(torch.tensor(b), torch.tensor(a), rtol=1e-5, atol=1e-6)
     assert resumed.graph.num_gaussians() == full.graph.num_gaussians()
+    assert [r["iteration"] for r in resumed.tracking_log] == [r["iteration"] for r in full.tracking_log] == [15, 29]
+    torch.testing.assert_close(resumed.graph.camera.tau.detach(), full.graph.camera.tau.detach())
 
 
 def test_no_checkpoint_is_written_once_checkpoint_ok_says_no(bundle, tmp_path):

@@ -17,6 +17,7 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field, fields, replace
 
 from agg.nodes.init import InitConfig
+from agg.train.camera_tracking import TrackingConfig
 
 ABLATIONS = ("tick-tock", "semantic", "topology")
 PAPER_ITERATIONS = 30_000
@@ -69,6 +70,7 @@ class TrainConfig:
     eval_every: int = 5  # hold out every 5th frame (frames i % 5 == 4)
     checkpoint_every: int = 500  # iterations between checkpoints (0: only at the end / on cancel)
     init: InitConfig = field(default_factory=InitConfig)
+    tracking: TrackingConfig | None = field(default_factory=TrackingConfig)  # camera tracking (None: off)
 
     @property
     def scale(self) -> float:
@@ -124,13 +126,15 @@ def _preset(name: str, max_width: int, iterations: int, sh_degree: int, max_gaus
 
 PRESETS: dict[str, TrainConfig] = {
     # CPU-sized presets; 'paper' is Sec. 4.2 (a GPU run: full resolution, 30k iterations, SH 3)
-    "fast": _preset("fast", 320, 1_500, 0, 40_000, agent_budget=1500, checkpoint_every=250),
+    "fast": _preset("fast", 320, 1_500, 0, 40_000, agent_budget=1500, checkpoint_every=250,
+                    tracking=TrackingConfig(at=(2_500, 5_000), steps=10)),
     "balanced": _preset("balanced", 480, 2_000, 1, 60_000, agent_budget=2000),
     "quality": _preset("quality", 960, 10_000, 2, 300_000, agent_budget=6000, checkpoint_every=1000),
     "paper": _preset("paper", 100_000, 30_000, 3, 1_000_000, agent_budget=20_000, checkpoint_every=2000),
 }
 # tests only: a few dozen iterations on tiny frames
-PRESETS["tiny"] = _preset("tiny", 160, 80, 0, 20_000, agent_budget=500, checkpoint_every=20, init_opacity=0.5)
+PRESETS["tiny"] = _preset("tiny", 160, 80, 0, 20_000, agent_budget=500, checkpoint_every=20, init_opacity=0.5,
+                          tracking=None)
 
 
 def get_preset(name: str) -> TrainConfig:

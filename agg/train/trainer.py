@@ -22,6 +22,7 @@ import torch
 from agg.graph import SceneGraph
 from agg.nodes.gaussians import keep_rows
 from agg.io.bundle import SceneBundle
+from agg.train.camera_tracking import track_cameras
 from agg.train.config import TrainConfig
 from agg.train.data import TrainData
 from agg.train.densify import DensifyConfig, Densifier, highest
@@ -77,6 +78,9 @@ class Trainer:
         dcfg = replace(dcfg, refine_every=max(dcfg.refine_every, 20), reset_every=max(dcfg.reset_every, 500))
         self.densifier = Densifier(dcfg, self.extent) if cfg.densify else None
         self.topology = self._make_topology() if cfg.topology else None
+        self.tracking = cfg.tracking.scaled(cfg.scale) if cfg.tracking is not None else None
+        self.tracked = 0  # tracking milestones passed
+        self.tracking_log: list[dict] = []  # one row per camera-tracking round
         self.optimizers: dict[str, torch.optim.Optimizer] = {}
         self.build_optimizers()
         self._t0 = time.perf_counter()
@@ -218,6 +222,7 @@ class Trainer:
         self._densify(trainable)
         if self.topology is not None and self.topology.config.due(self.iteration):
             self._evolve()
+        self._track_if_due()
         row = {"iteration": self.iteration, "frame": frame, "phase": phase.name, "loss": float(loss.detach()),
                "sem": None if sem is None else float(sem.detach()),
                "psnr": psnr(out.color.detach(), self.data.images[frame])}
@@ -293,6 +298,26 @@ class Trainer:
         self.build_optimizers()
         self.emit(event="topology", report={k: v for k, v in report.items() if k != "bg_src"})
 
+    def _track_if_due(self) -> None:
+        """A camera-tracking round (``agg.train.camera_tracking``) once the next milestone is reached, in the first
+        step whose phase trains the camera (a milestone that falls in a Tock waits for the next Tick)."""
+        t = self.tracking
+        if t is None or self.tracked >= len(t.at) or self.iteration < t.at[self.tracked]:
+            return
+        if "camera" not in self.trainable_groups(self.schedule.phase(self.iteration)):
+            return
+        set_trainable(self.group_params(), frozenset())  # every Gaussian frozen; tracking frees omega / tau
+        t0 = time.perf_counter()
+        attention = self.data.m_bg if self.cfg.semantic else None
+        report = track_cameras(self.graph, self.data.images, self.data.train_frames, t, self.extent,
+                               attention=attention, ssim_weight=self.cfg.ssim_weight, lambda_sem=self.cfg.lambda_sem,
+                               delta=self.cfg.delta)
+        row = {"iteration": self.iteration, "seconds": round(time.perf_counter() - t0, 2), **report}
+        self.tracking_log.append(row)
+        # milestones passed while waiting for a Tick are served by this round
+        self.tracked = sum(1 for a in t.at if a <= self.iteration)
+        self.emit(event="tracking", report=row)
+
     # ------------------------------------------------------------------ loop, events, checkpoints
     def emit(self, **event) -> None:
         if self.progress is not None:
@@ -326,6 +351,7 @@ class Trainer:
     def state_dict(self) -> dict:
         return {"graph": self.graph.state(), "iteration": self.iteration, "history": list(self.history),
                 "spawned": list(self.spawned), "pruned": list(self.pruned), "topology_log": list(self.topology_log),
+                "tracked": self.tracked, "tracking_log": list(self.tracking_log),
                 "generator": self.generator.get_state(), "order": list(self.order),
                 "optimizers": {k: o.state_dict() for k, o in self.optimizers.items()},
                 "densifier": self.densifier.state_dict() if self.densifier is not None else None,
@@ -352,6 +378,8 @@ class Trainer:
         trainer.history = list(state["history"])
         trainer.spawned, trainer.pruned = list(state["spawned"]), list(state["pruned"])
         trainer.topology_log = list(state.get("topology_log", []))
+        trainer.tracked = int(state.get("tracked", 0))
+        trainer.tracking_log = list(state.get("tracking_log", []))
         trainer.generator.set_state(state["generator"])
         trainer.order = list(state["order"])
         if trainer.densifier is not None and state["densifier"] is not None:
