@@ -17,7 +17,9 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
+import shutil
 import sys
 import time
 from pathlib import Path
@@ -38,7 +40,12 @@ def synth_bundle(work: Path, seed: int, noise: float, frames: int, width: int, h
     if not (path / "manifest.json").is_file():
         cfg = NoiseConfig(seed=seed, camera_translation_max=noise, missed=1, false=1)
         gt, priors = generate(SceneConfig(seed=seed, frames=frames, width=width, height=height), cfg)
-        write_bundle(path, gt, priors, cfg, overwrite=True)
+        tmp = path.with_name(f"{path.name}.tmp{os.getpid()}")  # runs started together race for one bundle:
+        write_bundle(tmp, gt, priors, cfg, overwrite=True)  # each writes its own, the first rename wins
+        try:
+            tmp.rename(path)
+        except OSError:
+            shutil.rmtree(tmp)
     return path
 
 
