@@ -60,6 +60,11 @@ class _Bar:
             self.bar.refresh()
         elif e.get("event") == "topology" and self.bar is not None:
             self.bar.write(f"topology: {json.dumps(e['report'])}")
+        elif e.get("event") == "tracking" and self.bar is not None:
+            r = e["report"]
+            losses = ", ".join(f"1/{lv['level']}: {lv['loss_first']:.4f} -> {lv['loss_last']:.4f}"
+                               for lv in r["levels"])
+            self.bar.write(f"camera tracking at iteration {r['iteration']} ({r['seconds']:.0f} s): {losses}")
 
     def close(self) -> None:
         if self.bar is not None:
