@@ -51,13 +51,17 @@ class TrackingConfig:
                               self.lr_translation, self.lr_rotation)
 
 
-def downsample(img: Tensor, level: int) -> Tensor:
-    """[H, W, C] -> [H // level, W // level, C] by area averaging (unchanged for level 1)."""
-    if level == 1:
+def level_size(width: int, height: int, level: int) -> tuple[int, int]:
+    """(w, h) of a tracking level: the training size divided by ``level``, at least 8 pixels."""
+    return max(8, width // level), max(8, height // level)
+
+
+def downsample(img: Tensor, width: int, height: int) -> Tensor:
+    """[H, W, C] -> [height, width, C] by area averaging (unchanged when it is that size already)."""
+    if tuple(img.shape[:2]) == (height, width):
         return img
     x = img.permute(2, 0, 1)[None]
-    h, w = img.shape[0] // level, img.shape[1] // level
-    return F.interpolate(x, size=(h, w), mode="area")[0].permute(1, 2, 0)
+    return F.interpolate(x, size=(height, width), mode="area")[0].permute(1, 2, 0)
 
 
 def scaled_intrinsics(K: Tensor, level: int) -> Tensor:  # noqa: N803
@@ -87,9 +91,9 @@ def track_cameras(graph, images: Tensor, frames: Sequence[int], config: Tracking
         factor = 0.5 ** li
         opt.param_groups[0]["lr"] = config.lr_rotation * factor
         opt.param_groups[1]["lr"] = config.lr_translation * extent * factor
-        w, h = max(8, width // level), max(8, height // level)
-        targets = {f: downsample(images[f], level) for f in frames}  # [h, w, 3] each
-        maps = ({f: downsample(attention[f][..., None], level)[..., 0] for f in frames}
+        w, h = level_size(width, height, level)
+        targets = {f: downsample(images[f], w, h) for f in frames}  # [h, w, 3] each
+        maps = ({f: downsample(attention[f][..., None], w, h)[..., 0] for f in frames}
                 if attention is not None else None)
         first = last = 0.0
         for step in range(config.steps):
