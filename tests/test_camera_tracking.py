@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import replace
 
+import numpy as np
 import pytest
 import torch
 
@@ -12,7 +13,8 @@ from agg.io.bundle import SceneBundle
 from agg.synth.corrupt import NoiseConfig
 from agg.synth.scene import SceneConfig
 from agg.synth.suite import generate, write_bundle
-from agg.train.camera_tracking import TrackingConfig, scaled_intrinsics, track_cameras
+from agg.io.video import scale_intrinsics
+from agg.train.camera_tracking import TrackingConfig, level_size, track_cameras
 from agg.train.config import get_preset
 from agg.train.data import load_train_data
 from agg.train.tick_tock import set_trainable
@@ -28,11 +30,12 @@ def bundle(tmp_path_factory):
     return SceneBundle.load(path)
 
 
-def test_scaled_intrinsics_keep_pixel_centres():
-    K = torch.tensor([[100.0, 0, 63.5], [0, 100.0, 39.5], [0, 0, 1]])  # noqa: N806
-    k2 = scaled_intrinsics(K, 2)
-    assert torch.allclose(k2, torch.tensor([[50.0, 0, 31.5], [0, 50.0, 19.5], [0, 0, 1]]))
-    assert torch.equal(scaled_intrinsics(K, 1), K)
+def test_level_intrinsics_keep_pixel_centres():
+    K = np.array([[100.0, 0, 63.5], [0, 100.0, 39.5], [0, 0, 1]])  # noqa: N806
+    assert level_size(128, 80, 2) == (64, 40) and level_size(128, 80, 32) == (8, 8)
+    k2 = scale_intrinsics(K, (128, 80), level_size(128, 80, 2))
+    assert np.allclose(k2, [[50.0, 0, 31.5], [0, 50.0, 19.5], [0, 0, 1]])
+    assert np.array_equal(scale_intrinsics(K, (128, 80), level_size(128, 80, 1)), K)
 
 
 def test_tracking_pulls_displaced_cameras_back_and_touches_nothing_else(bundle):

@@ -55,7 +55,7 @@ def _agent_masks(bundle, agent_masks) -> tuple[np.ndarray | None, str]:
     return None, "none"
 
 
-def _fit(img: torch.Tensor, height: int, width: int, mode: str) -> torch.Tensor:
+def fit_image(img: torch.Tensor, height: int, width: int, mode: str = "area") -> torch.Tensor:
     """[h, w, C] -> [height, width, C] (``area`` for images, ``nearest`` for masks); unchanged when it fits."""
     if tuple(img.shape[:2]) == (height, width):
         return img
@@ -137,11 +137,11 @@ def evaluate(graph, bundle, test_frames: Sequence[int], train_frames: Sequence[i
     ssum = n_ssim = 0.0
     for frame, pred in zip(frames, renders):
         gt = as_image(images[frame] if images is not None else bundle.frame(frame))
-        gt = _fit(gt, *pred.shape[:2], "area")  # [H, W, 3] float in [0, 1]
+        gt = fit_image(gt, *pred.shape[:2], "area")  # [H, W, 3] float in [0, 1]
         row = {"frame": frame, "psnr": psnr(pred, gt), "ssim": ssim(pred, gt), "lpips": lpips(pred, gt),
                "psnr_agents": None, "ssim_agents": None, "agent_pixels": None}
         if masks is not None:
-            m = _fit(torch.as_tensor(np.array(masks[frame], bool))[..., None], *pred.shape[:2], "nearest")
+            m = fit_image(torch.as_tensor(np.array(masks[frame], bool))[..., None], *pred.shape[:2], "nearest")
             m = m[..., 0].numpy() > 0.5  # [H, W]
             row["agent_pixels"] = int(m.sum())
             if m.any():

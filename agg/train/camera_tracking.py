@@ -32,9 +32,10 @@ from dataclasses import dataclass
 from typing import Sequence
 
 import torch
-import torch.nn.functional as F  # noqa: N812
 from torch import Tensor
 
+from agg.eval.nvs import fit_image
+from agg.io.video import scale_intrinsics
 from agg.train.losses import photometric_loss, semantic_attention_loss
 
 
@@ -54,22 +55,6 @@ class TrackingConfig:
 def level_size(width: int, height: int, level: int) -> tuple[int, int]:
     """(w, h) of a tracking level: the training size divided by ``level``, at least 8 pixels."""
     return max(8, width // level), max(8, height // level)
-
-
-def downsample(img: Tensor, width: int, height: int) -> Tensor:
-    """[H, W, C] -> [height, width, C] by area averaging (unchanged when it is that size already)."""
-    if tuple(img.shape[:2]) == (height, width):
-        return img
-    x = img.permute(2, 0, 1)[None]
-    return F.interpolate(x, size=(height, width), mode="area")[0].permute(1, 2, 0)
-
-
-def scaled_intrinsics(K: Tensor, level: int) -> Tensor:  # noqa: N803
-    """[3, 3] intrinsics for an image ``level`` times smaller (pixel centres kept: c' = (c + 0.5) / level - 0.5)."""
-    out = K.clone()
-    out[:2, :2] = K[:2, :2] / level
-    out[:2, 2] = (K[:2, 2] + 0.5) / level - 0.5
-    return out
 
 
 def track_cameras(graph, images: Tensor, frames: Sequence[int], config: TrackingConfig, extent: float, *,
@@ -92,16 +77,20 @@ def track_cameras(graph, images: Tensor, frames: Sequence[int], config: Tracking
         opt.param_groups[0]["lr"] = config.lr_rotation * factor
         opt.param_groups[1]["lr"] = config.lr_translation * extent * factor
         w, h = level_size(width, height, level)
-        targets = {f: downsample(images[f], w, h) for f in frames}  # [h, w, 3] each
-        maps = ({f: downsample(attention[f][..., None], w, h)[..., 0] for f in frames}
+        targets = {f: fit_image(images[f], h, w) for f in frames}  # [h, w, 3] each
+        maps = ({f: fit_image(attention[f][..., None], h, w)[..., 0] for f in frames}
                 if attention is not None else None)
+        intrinsics = {}  # frame -> [3, 3] at this level
+        for f in frames:
+            k = graph.K[min(f, graph.K.shape[0] - 1)]
+            k_level = scale_intrinsics(k.detach().cpu().numpy(), (width, height), (w, h))
+            intrinsics[f] = torch.as_tensor(k_level, dtype=k.dtype, device=k.device)
         first = last = 0.0
         for step in range(config.steps):
             opt.zero_grad(set_to_none=True)
             total = 0.0
             for f in frames:
-                out = graph.render(f, K=scaled_intrinsics(graph.K[min(f, graph.K.shape[0] - 1)], level),
-                                   width=w, height=h)
+                out = graph.render(f, K=intrinsics[f], width=w, height=h)
                 loss = photometric_loss(out.color, targets[f], ssim_weight if min(w, h) >= 11 else 0.0)
                 if maps is not None:
                     loss = loss + semantic_attention_loss(out.color, targets[f], maps[f], lambda_sem, delta)
