@@ -49,17 +49,24 @@ def synth_bundle(work: Path, seed: int, noise: float, frames: int, width: int, h
     return path
 
 
-def topology_scores(scene_dir: Path, bundle_path: Path) -> dict:
-    """Distance of the best spawned agent to the missed car per frame, and whether false agents survived."""
+def load_graph(scene_dir: Path):
+    """The trained SceneGraph of a scene directory (its model.pt)."""
     import torch
 
     from agg.graph import SceneGraph
+
+    state = torch.load(scene_dir / "model.pt", map_location="cpu", weights_only=False)
+    return SceneGraph.from_state(state["graph"])
+
+
+def topology_scores(graph, bundle_path: Path) -> dict:
+    """Distance of the best spawned agent to the missed car per frame, and whether false agents survived."""
+    import torch
+
     from agg.synth.suite import load_gt_extras
 
     extras = load_gt_extras(bundle_path)
     index = extras["index"]
-    state = torch.load(scene_dir / "model.pt", map_location="cpu", weights_only=False)
-    graph = SceneGraph.from_state(state["graph"])
     ids = [a["id"] for a in index["agents"]]
     out: dict = {"missed_ids": index["missed_ids"], "false_ids": index["false_ids"]}
     surviving = set(graph.slot_track_ids().tolist())
@@ -91,21 +98,19 @@ def topology_scores(scene_dir: Path, bundle_path: Path) -> dict:
     return out
 
 
-def camera_scores(scene_dir: Path, bundle_path: Path) -> dict:
+def camera_scores(graph, scene_dir: Path, bundle_path: Path) -> dict:
     """Camera-centre error against ground truth (metres) of the priors and of the refined cameras, over the
     training frames: mean, median, max, and ``sim3_mean_m`` after the Sim(3) alignment of the training cameras
     to ground truth (what is left once a drift of the whole trajectory and map together is taken out)."""
     import torch
 
     from agg.eval.trajectory import align_sim3
-    from agg.graph import SceneGraph
     from agg.io.bundle import SceneBundle
 
     b = SceneBundle.load(bundle_path)
     meta = json.loads((scene_dir / "scene.json").read_text())
-    state = torch.load(scene_dir / "model.pt", map_location="cpu", weights_only=False)
     with torch.no_grad():
-        refined = SceneGraph.from_state(state["graph"]).camera.world_from_camera().numpy()  # [T, 4, 4]
+        refined = graph.camera.world_from_camera().numpy()  # [T, 4, 4]
     gt, frames = b.gt.world_from_camera, meta["train_frames"]
     out = {}
     for name, poses in (("prior", b.world_from_camera), ("refined", refined)):
@@ -132,8 +137,9 @@ def _run(args, name: str, input_path, preset: str, row: dict, **kwargs) -> dict 
     row = {**row, "preset": preset, "wall_s": round(time.perf_counter() - t0, 1), "metrics": summary.get("metrics"),
            "summary": summary}
     if row["kind"] in ("synth", "preset"):  # synthetic bundles: score the missed and false agents
-        row["topology"] = topology_scores(work / "scenes" / name, input_path)
-        row["cameras"] = camera_scores(work / "scenes" / name, input_path)
+        graph = load_graph(work / "scenes" / name)
+        row["topology"] = topology_scores(graph, input_path)
+        row["cameras"] = camera_scores(graph, work / "scenes" / name, input_path)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(row, indent=1))
     print(name, f"{row['wall_s']} s", "PSNR", row["metrics"]["psnr"], "agents", row["metrics"]["psnr_agents"],
