@@ -79,7 +79,6 @@ class Trainer:
         self.densifier = Densifier(dcfg, self.extent) if cfg.densify else None
         self.topology = self._make_topology() if cfg.topology else None
         self.tracking = cfg.tracking.scaled(cfg.scale) if cfg.tracking is not None else None
-        self.tracked = 0  # tracking milestones passed
         self.tracking_log: list[dict] = []  # one row per camera-tracking round
         self.optimizers: dict[str, torch.optim.Optimizer] = {}
         self.build_optimizers()
@@ -314,9 +313,15 @@ class Trainer:
                                delta=self.cfg.delta)
         row = {"iteration": self.iteration, "seconds": round(time.perf_counter() - t0, 2), **report}
         self.tracking_log.append(row)
-        # milestones passed while waiting for a Tick are served by this round
-        self.tracked = sum(1 for a in t.at if a <= self.iteration)
         self.emit(event="tracking", report=row)
+
+    @property
+    def tracked(self) -> int:
+        """Tracking milestones served: those up to the last round's iteration (a round that waited for a Tick
+        serves every milestone passed meanwhile)."""
+        if self.tracking is None or not self.tracking_log:
+            return 0
+        return sum(1 for a in self.tracking.at if a <= self.tracking_log[-1]["iteration"])
 
     # ------------------------------------------------------------------ loop, events, checkpoints
     def emit(self, **event) -> None:
@@ -351,7 +356,7 @@ class Trainer:
     def state_dict(self) -> dict:
         return {"graph": self.graph.state(), "iteration": self.iteration, "history": list(self.history),
                 "spawned": list(self.spawned), "pruned": list(self.pruned), "topology_log": list(self.topology_log),
-                "tracked": self.tracked, "tracking_log": list(self.tracking_log),
+                "tracking_log": list(self.tracking_log),
                 "generator": self.generator.get_state(), "order": list(self.order),
                 "optimizers": {k: o.state_dict() for k, o in self.optimizers.items()},
                 "densifier": self.densifier.state_dict() if self.densifier is not None else None,
@@ -378,7 +383,6 @@ class Trainer:
         trainer.history = list(state["history"])
         trainer.spawned, trainer.pruned = list(state["spawned"]), list(state["pruned"])
         trainer.topology_log = list(state.get("topology_log", []))
-        trainer.tracked = int(state.get("tracked", 0))
         trainer.tracking_log = list(state.get("tracking_log", []))
         trainer.generator.set_state(state["generator"])
         trainer.order = list(state["order"])
