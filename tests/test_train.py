@@ -76,6 +76,28 @@ def test_tick_gives_exactly_zero_gradient_to_agents_and_tock_to_camera_and_backg
     assert all(any(p.grad is not None and p.grad.abs().sum() > 0 for p in groups[n]) for n in everything)
 
 
+def test_the_densifier_reads_the_photometric_gradient_and_the_parameters_the_whole_loss(bundle):
+    tick = Phase("tick", frozenset({"camera", "static"}), 1.0, "bg")
+
+    def backward(**kw):
+        tr = _trainer(bundle, iterations=300, ablate=frozenset({"topology"}) | kw.pop("ablate", frozenset()), **kw)
+        tr.iteration = tr.schedule.warmup  # a Tick inside the densification window
+        assert tr.iteration < tr.densifier.config.refine_stop
+        _, sem, out = tr.forward_backward(3, tick)
+        return sem, out.meta.means2d.grad.clone(), [p.grad.clone() for p in tr.group_params()["static"]]
+
+    sem, grad2d, params = backward()  # densify_grad="photo", the default
+    assert sem is not None and float(sem.detach()) > 0
+    sem_total, grad2d_total, params_total = backward(densify_grad="total")
+    _, grad2d_photo, _ = backward(ablate=frozenset({"semantic"}))
+    for a, b in zip(params, params_total):  # the parameters step on L_photo + L_sem either way
+        torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-9)
+    torch.testing.assert_close(grad2d, grad2d_photo, rtol=1e-5, atol=1e-12)  # the densifier sees L_photo's
+    assert float(grad2d_total.norm()) > 1.5 * float(grad2d_photo.norm())  # L_sem would have inflated it
+    with pytest.raises(ValueError, match="densify_grad"):
+        replace(get_preset("tiny"), densify_grad="sem")
+
+
 def test_an_optimiser_step_in_tick_leaves_agents_bit_identical(bundle):
     tr = _trainer(bundle, iterations=30, ablate=frozenset({"topology"}))
     tr.iteration = tr.schedule.warmup  # first Tick iteration

@@ -65,12 +65,17 @@ class TrainConfig:
     densify_every: int = 100
     opacity_reset_every: int = 3_000
     grad_threshold: float = 2e-4
+    densify_grad: str = "photo"  # what the densifier's screen gradient is of: "photo" (L_photo) | "total" (+ L_sem)
     ablate: frozenset = frozenset()
     seed: int = 0
     eval_every: int = 5  # hold out every 5th frame (frames i % 5 == 4)
     checkpoint_every: int = 500  # iterations between checkpoints (0: only at the end / on cancel)
     init: InitConfig = field(default_factory=InitConfig)
     tracking: TrackingConfig | None = field(default_factory=TrackingConfig)  # camera tracking (None: off)
+
+    def __post_init__(self):
+        if self.densify_grad not in ("photo", "total"):
+            raise ValueError(f"densify_grad must be 'photo' or 'total', got {self.densify_grad!r}")
 
     @property
     def scale(self) -> float:

@@ -191,15 +191,30 @@ class Trainer:
         out = self.graph.render(frame)
         if self.densifier is not None and out.meta.means2d.requires_grad:
             out.meta.means2d.retain_grad()
-        loss = photometric_loss(out.color, gt, cfg.ssim_weight)
-        sem = None
+        photo = photometric_loss(out.color, gt, cfg.ssim_weight)
+        loss, sem = photo, None
         if cfg.semantic and phase.attention is not None and data.m_bg is not None:
             m = (data.m_bg if phase.attention == "bg" else data.m_ag)[frame]
             sem = semantic_attention_loss(out.color, gt, m, cfg.lambda_sem, cfg.delta)
-            loss = loss + sem
-        if loss.requires_grad:
+            loss = photo + sem
+        if not loss.requires_grad:
+            return loss, sem, out
+        if sem is not None and self._densify_reads_photo(out):
+            # the densifier's statistic is dL_photo/dmeans2d, the gradient its threshold is calibrated on; the
+            # parameters get the gradient of the whole loss (two backward passes, summed into .grad)
+            photo.backward(retain_graph=True)
+            grad2d = out.meta.means2d.grad.clone()  # [N, 2]
+            sem.backward()
+            out.meta.means2d.grad = grad2d
+        else:
             loss.backward()
         return loss, sem, out
+
+    def _densify_reads_photo(self, out) -> bool:
+        """Whether this step's screen-space gradients go to the densifier and must leave L_sem out."""
+        d = self.densifier
+        return (d is not None and self.cfg.densify_grad == "photo" and out.meta.means2d.requires_grad
+                and self.iteration < d.config.refine_stop)
 
     def step(self) -> dict:
         g = self.graph
