@@ -18,7 +18,7 @@ from agg.train.camera_tracking import TrackingConfig, level_size, track_cameras
 from agg.train.config import get_preset
 from agg.train.data import load_train_data
 from agg.train.tick_tock import set_trainable
-from agg.train.trainer import Trainer, scene_extent, seed_everything
+from agg.train.trainer import Cancelled, Trainer, scene_extent, seed_everything
 
 
 @pytest.fixture(scope="module")
@@ -79,3 +79,40 @@ def test_a_tracking_milestone_in_a_tock_waits_for_the_next_tick(bundle):
     assert [row["iteration"] for row in tr.tracking_log] == [7, 25]
     assert tr.tracked == 2 and all("camera" in tr.schedule.phase(r["iteration"]).trainable
                                    for r in tr.tracking_log)
+
+
+def test_a_cancel_inside_a_tracking_round_puts_the_cameras_back_and_the_resumed_run_is_exact(bundle, tmp_path):
+    cfg = replace(get_preset("tiny"), iterations=30, tracking=TrackingConfig(at=(10_000,), levels=(4, 2), steps=3),
+                  ablate=frozenset({"topology"}), densify_from=300, densify_every=300)
+
+    def trainer(stop_after: int | None = None) -> Trainer:
+        seed_everything(cfg.seed)
+        tr = Trainer(SceneGraph.from_bundle(bundle, cfg.init), load_train_data(bundle, cfg.max_width), cfg, bundle)
+        calls = {"n": 0}
+
+        def stop() -> bool:  # asked before each iteration, and before each step inside a tracking round
+            calls["n"] += 1
+            return stop_after is not None and calls["n"] > stop_after
+        tr.should_stop = stop
+        return tr
+
+    full = trainer()
+    full.run()
+    (r,) = [row["iteration"] for row in full.tracking_log]
+    before_round = trainer(stop_after=r)  # stops at the loop check of iteration r, before the round
+    with pytest.raises(Cancelled):
+        before_round.run()
+    inside = trainer(stop_after=r + 1 + 4)  # stops before the round's 5th step (the second level's 2nd)
+    ckpt = tmp_path / "ckpt.pt"
+    with pytest.raises(Cancelled):
+        inside.run(ckpt, checkpoint_every=0)
+    assert inside.iteration == before_round.iteration == r and inside.tracking_log == []
+    assert torch.equal(inside.graph.camera.tau, before_round.graph.camera.tau)
+    assert torch.equal(inside.graph.camera.omega, before_round.graph.camera.omega)
+    assert inside.graph.camera.tau.grad is None
+    resumed = Trainer.resume(ckpt, load_train_data(bundle, cfg.max_width), cfg, bundle)
+    resumed.run()
+    assert [row["iteration"] for row in resumed.tracking_log] == [r]
+    torch.testing.assert_close(torch.tensor([h["loss"] for h in resumed.history]),
+                               torch.tensor([h["loss"] for h in full.history]), rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(resumed.graph.camera.tau.detach(), full.graph.camera.tau.detach())

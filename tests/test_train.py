@@ -120,9 +120,9 @@ def test_resume_reproduces_the_uninterrupted_loss_curve_and_cancellation_is_coop
     ckpt = tmp_path / "ckpt.pt"
     calls = {"n": 0}
 
-    def stop() -> bool:
+    def stop() -> bool:  # asked before each iteration and before each tracking step (2 in the round at 15)
         calls["n"] += 1
-        return calls["n"] > 23
+        return calls["n"] > 25
 
     events = []
     first = _trainer(bundle, iterations=44, **kw)

@@ -19,7 +19,9 @@ against its map:
 - one fresh Adam over the node's ``omega`` and ``tau`` (element-wise, so the frames are independent problems that
   share one step), ``steps`` steps per level; the rates are ``lr_translation x scene extent`` and
   ``lr_rotation`` radians, halved at each finer level;
-- frame 0 stays fixed (the gauge) and held-out frames are never rendered, so their corrections are untouched.
+- frame 0 stays fixed (the gauge) and held-out frames are never rendered, so their corrections are untouched;
+- a cancellation between two steps puts the corrections back as they were before the round, so a resumed run
+  tracks the round again from the same state.
 
 Tracking only happens where the camera trains: in the warm-up, a Tick or the joint phase (never in a Tock), and
 with Tick-Tock ablated at the same milestones. It does not touch the Gaussians, the densifier statistics or the
@@ -29,7 +31,7 @@ topology accumulators.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Callable, Sequence
 
 import torch
 from torch import Tensor
@@ -59,14 +61,17 @@ def level_size(width: int, height: int, level: int) -> tuple[int, int]:
 
 def track_cameras(graph, images: Tensor, frames: Sequence[int], config: TrackingConfig, extent: float, *,
                   attention: Tensor | None = None, ssim_weight: float = 0.2, lambda_sem: float = 0.8,
-                  delta: float = 1e-6) -> dict:
+                  delta: float = 1e-6, should_stop: Callable[[], bool] | None = None) -> dict | None:
     """Refine ``graph.camera``'s corrections of ``frames`` against the frozen map; returns a report (the mean
     loss of the first and last step of each level). images [T, H, W, 3]; attention [T, H, W] (M_bg) or None.
 
+    ``should_stop()`` is asked before every step; once it is True the corrections are put back as they were
+    before the round and None is returned (the round can be run again from the start, e.g. after a resume).
     The caller freezes the Gaussians (``requires_grad`` False); only ``omega`` and ``tau`` get gradients here."""
     cam = graph.camera
     width, height = graph.width, graph.height
     params = [cam.omega, cam.tau]
+    before = [p.detach().clone() for p in params]
     for p in params:
         p.requires_grad_(True)
     opt = torch.optim.Adam([{"params": [cam.omega], "lr": config.lr_rotation},
@@ -87,6 +92,12 @@ def track_cameras(graph, images: Tensor, frames: Sequence[int], config: Tracking
             intrinsics[f] = torch.as_tensor(k_level, dtype=k.dtype, device=k.device)
         first = last = 0.0
         for step in range(config.steps):
+            if should_stop is not None and should_stop():
+                with torch.no_grad():
+                    for p, b in zip(params, before):
+                        p.copy_(b)
+                        p.grad = None
+                return None
             opt.zero_grad(set_to_none=True)
             total = 0.0
             for f in frames:

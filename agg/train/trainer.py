@@ -236,7 +236,6 @@ class Trainer:
         self._densify(trainable)
         if self.topology is not None and self.topology.config.due(self.iteration):
             self._evolve()
-        self._track_if_due()
         row = {"iteration": self.iteration, "frame": frame, "phase": phase.name, "loss": float(loss.detach()),
                "sem": None if sem is None else float(sem.detach()),
                "psnr": psnr(out.color.detach(), self.data.images[frame])}
@@ -312,23 +311,27 @@ class Trainer:
         self.build_optimizers()
         self.emit(event="topology", report={k: v for k, v in report.items() if k != "bg_src"})
 
-    def _track_if_due(self) -> None:
-        """A camera-tracking round (``agg.train.camera_tracking``) once the next milestone is reached, in the first
-        step whose phase trains the camera (a milestone that falls in a Tock waits for the next Tick)."""
+    def _track_if_due(self) -> bool:
+        """A camera-tracking round (``agg.train.camera_tracking``) once the next milestone is reached, before the
+        first step whose phase trains the camera (a milestone that falls in a Tock waits for the next Tick).
+        False when ``should_stop`` cancelled the round (the cameras are as they were before it)."""
         t = self.tracking
         if t is None or self.tracked >= len(t.at) or self.iteration < t.at[self.tracked]:
-            return
+            return True
         if "camera" not in self.trainable_groups(self.schedule.phase(self.iteration)):
-            return
+            return True
         set_trainable(self.group_params(), frozenset())  # every Gaussian frozen; tracking frees omega / tau
         t0 = time.perf_counter()
         attention = self.data.m_bg if self.cfg.semantic else None
         report = track_cameras(self.graph, self.data.images, self.data.train_frames, t, self.extent,
                                attention=attention, ssim_weight=self.cfg.ssim_weight, lambda_sem=self.cfg.lambda_sem,
-                               delta=self.cfg.delta)
+                               delta=self.cfg.delta, should_stop=self.should_stop)
+        if report is None:
+            return False
         row = {"iteration": self.iteration, "seconds": round(time.perf_counter() - t0, 2), **report}
         self.tracking_log.append(row)
         self.emit(event="tracking", report=row)
+        return True
 
     @property
     def tracked(self) -> int:
@@ -348,7 +351,7 @@ class Trainer:
         total = self.cfg.iterations
         start_it, t0 = self.iteration, time.perf_counter()
         while self.iteration < total:
-            if self.should_stop is not None and self.should_stop():
+            if (self.should_stop is not None and self.should_stop()) or not self._track_if_due():
                 self._checkpoint(checkpoint)
                 raise Cancelled(f"cancelled at iteration {self.iteration}")
             row = self.step()
