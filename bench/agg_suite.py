@@ -3,7 +3,7 @@
     python bench/agg_suite.py synth [--seeds 0,1,2] [--noise 0,0.25,0.5,1.0] [--variants agg,baseline,...]
     python bench/agg_suite.py kitti [--data ../shared/data/kitti06_51] [--preset fast]
     python bench/agg_suite.py presets [--presets fast,balanced] [--seed 0]
-    python bench/agg_suite.py budget --iterations 4000 [--seeds 0] [--noise 1.0] [--variants agg,no-tick-tock]
+    python bench/agg_suite.py probe --set iterations=4000 [--set lr.agent_boost=1] [--seeds 0] [--noise 1.0]
     python bench/agg_suite.py report            # tables -> docs/BENCHMARKS.md section, plots -> docs/*.png
 
 Synthetic runs: ``SceneConfig(seed, frames=24, 320x192)`` with ``NoiseConfig(camera_translation_max=noise,
@@ -12,8 +12,9 @@ at ``--preset`` (default balanced). Every run's result is a JSON file under ``--
 bench/out/agg_suite), so interrupted suites resume and ``report`` reads whatever has finished.
 Variants: ``agg`` (everything on), ``baseline`` (``--ablate all``: the fixed-topology GSG baseline, same code),
 ``no-tick-tock``, ``no-semantic``, ``no-topology``.
-``budget`` runs the same synthetic variants at ``--preset`` with its iteration count replaced by ``--iterations``
-(every milestone scales with it): does a component's worth depend on the training budget?
+``probe`` runs the same synthetic variants at ``--preset`` with training options replaced (``--set NAME=VALUE``,
+``lr.NAME`` for a learning-rate field; milestones scale with ``iterations``), to ask what a component's worth
+depends on. Its records are kind "probe" and stay out of the suite's tables.
 """
 
 from __future__ import annotations
@@ -126,8 +127,9 @@ def camera_scores(graph, scene_dir: Path, bundle_path: Path) -> dict:
     return out
 
 
-def _run(args, name: str, input_path, preset: str, row: dict, **kwargs) -> dict | None:
-    """Reconstruct ``input_path`` into work/scenes/NAME and record work/runs/NAME.json (``row`` plus wall time,
+def _run(args, name: str, input_path, preset, row: dict, **kwargs) -> dict | None:
+    """Reconstruct ``input_path`` (at ``preset``, a name or a TrainConfig) into work/scenes/NAME and record
+    work/runs/NAME.json (``row`` plus wall time,
     metrics and summary); None when that record exists and ``--force`` is off."""
     from agg.train import reconstruct
 
@@ -137,9 +139,9 @@ def _run(args, name: str, input_path, preset: str, row: dict, **kwargs) -> dict 
         return None
     t0 = time.perf_counter()
     summary = reconstruct(input_path, work / "scenes" / name, preset, resume=False, **kwargs)
-    row = {**row, "preset": preset, "wall_s": round(time.perf_counter() - t0, 1), "metrics": summary.get("metrics"),
+    row = {**row, "preset": preset if isinstance(preset, str) else preset.name, "wall_s": round(time.perf_counter() - t0, 1), "metrics": summary.get("metrics"),
            "summary": summary}
-    if row["kind"] in ("synth", "preset", "budget"):  # synthetic bundles: score the missed and false agents
+    if row["kind"] in ("synth", "preset", "probe"):  # synthetic bundles: score the missed and false agents
         graph = load_graph(work / "scenes" / name)
         row["topology"] = topology_scores(graph, input_path)
         row["cameras"] = camera_scores(graph, work / "scenes" / name, input_path)
@@ -162,17 +164,38 @@ def run_synth(args) -> None:
                     print("  topology:", row["topology"]["missed_match"], flush=True)
 
 
-def run_budget(args) -> None:
-    if not args.iterations:
-        raise SystemExit("budget needs --iterations")
+def probe_config(preset: str, sets: list[str]):
+    """The preset with ``NAME=VALUE`` replacements (``lr.NAME`` for a learning-rate field), and a tag naming them."""
+    from dataclasses import fields, replace
+
+    from agg.train.config import get_preset
+
+    cfg = get_preset(preset)
+    tags = []
+    for item in sets:
+        name, _, value = item.partition("=")
+        target = cfg.lr if name.startswith("lr.") else cfg
+        field = name.removeprefix("lr.")
+        kinds = {f.name: type(getattr(target, f.name)) for f in fields(target)}
+        if field not in kinds or not value:
+            raise SystemExit(f"--set {item!r}: no option {name!r} (NAME=VALUE)")
+        new = replace(target, **{field: kinds[field](value)})
+        cfg = replace(cfg, lr=new) if name.startswith("lr.") else new
+        tags.append(f"{field}{value}")
+    return cfg, "_".join(tags)
+
+
+def run_probe(args) -> None:
+    if not args.set:
+        raise SystemExit("probe needs at least one --set NAME=VALUE")
+    cfg, tag = probe_config(args.preset, args.set)
     for seed in [int(s) for s in args.seeds.split(",")]:
         for noise in [float(n) for n in args.noise.split(",")]:
             for variant in args.variants.split(","):
                 bundle = synth_bundle(Path(args.work), seed, noise, args.frames, args.width, args.height)
-                _run(args, f"budget_s{seed}_n{noise:g}_{variant}_{args.preset}_it{args.iterations}", bundle,
-                     args.preset, {"kind": "budget", "seed": seed, "noise": noise, "variant": variant,
-                                   "iterations": args.iterations},
-                     ablate=VARIANTS[variant], overrides={"iterations": args.iterations})
+                _run(args, f"probe_s{seed}_n{noise:g}_{variant}_{args.preset}_{tag}", bundle, cfg,
+                     {"kind": "probe", "seed": seed, "noise": noise, "variant": variant, "set": args.set},
+                     ablate=VARIANTS[variant])
 
 
 def run_kitti(args) -> None:
@@ -189,7 +212,7 @@ def run_presets(args) -> None:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("what", choices=["synth", "budget", "kitti", "presets", "report"])
+    p.add_argument("what", choices=["synth", "probe", "kitti", "presets", "report"])
     p.add_argument("--work", default=str(ROOT / "bench" / "out" / "agg_suite"))
     p.add_argument("--seeds", default="0,1,2")
     p.add_argument("--seed", type=int, default=0)
@@ -201,7 +224,7 @@ def main(argv=None) -> int:
     p.add_argument("--width", type=int, default=320)
     p.add_argument("--height", type=int, default=192)
     p.add_argument("--data", default=str(ROOT.parent / "shared" / "data" / "kitti06_51"))
-    p.add_argument("--iterations", type=int, default=None, help="budget: the iteration count")
+    p.add_argument("--set", action="append", default=[], help="probe: NAME=VALUE (lr.NAME for a learning rate)")
     p.add_argument("--force", action="store_true")
     args = p.parse_args(argv)
     if args.what == "report":
@@ -209,7 +232,7 @@ def main(argv=None) -> int:
 
         write_report(Path(args.work), ROOT / "docs", machine=f"{platform.processor() or platform.machine()}")
         return 0
-    {"synth": run_synth, "budget": run_budget, "kitti": run_kitti, "presets": run_presets}[args.what](args)
+    {"synth": run_synth, "probe": run_probe, "kitti": run_kitti, "presets": run_presets}[args.what](args)
     return 0
 
 
