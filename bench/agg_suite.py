@@ -129,8 +129,8 @@ def camera_scores(graph, scene_dir: Path, bundle_path: Path) -> dict:
 
 def _run(args, name: str, input_path, preset, row: dict, **kwargs) -> dict | None:
     """Reconstruct ``input_path`` (at ``preset``, a name or a TrainConfig) into work/scenes/NAME and record
-    work/runs/NAME.json (``row`` plus wall time,
-    metrics and summary); None when that record exists and ``--force`` is off."""
+    work/runs/NAME.json (``row`` plus wall time, metrics and summary); None when that record exists and ``--force``
+    is off."""
     from agg.train import reconstruct
 
     work = Path(args.work)
