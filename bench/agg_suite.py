@@ -139,8 +139,8 @@ def _run(args, name: str, input_path, preset, row: dict, **kwargs) -> dict | Non
         return None
     t0 = time.perf_counter()
     summary = reconstruct(input_path, work / "scenes" / name, preset, resume=False, **kwargs)
-    row = {**row, "preset": preset if isinstance(preset, str) else preset.name, "wall_s": round(time.perf_counter() - t0, 1), "metrics": summary.get("metrics"),
-           "summary": summary}
+    row = {**row, "preset": preset if isinstance(preset, str) else preset.name,
+           "wall_s": round(time.perf_counter() - t0, 1), "metrics": summary.get("metrics"), "summary": summary}
     if row["kind"] in ("synth", "preset", "probe"):  # synthetic bundles: score the missed and false agents
         graph = load_graph(work / "scenes" / name)
         row["topology"] = topology_scores(graph, input_path)

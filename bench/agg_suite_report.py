@@ -112,6 +112,23 @@ def synth_tables(runs: list[dict]) -> list[str]:
     return out
 
 
+def probe_table(runs: list[dict]) -> list[str]:
+    """Probe runs (a preset with options replaced) beside the suite's run of the same seed, noise and variant."""
+    probes = [r for r in runs if r["kind"] == "probe"]
+    if not probes:
+        return []
+    plain = {(r["seed"], r["noise"], r["variant"]): r for r in runs if r["kind"] == "synth"}
+    out = ["### Probes: the same runs with training options replaced", "",
+           "| Seed | Noise | Variant | Options | PSNR | Agent PSNR | Gaussians | Wall (s) | Unchanged PSNR / agent "
+           "PSNR |", "|---|---|---|---|---|---|---|---|---|"]
+    for r in sorted(probes, key=lambda r: (r["seed"], r["noise"], " ".join(r["set"]), r["variant"])):
+        m, ref = r["metrics"], plain.get((r["seed"], r["noise"], r["variant"]))
+        base = f"{_fmt(ref['metrics']['psnr'])} / {_fmt(ref['metrics']['psnr_agents'])}" if ref else "–"
+        out.append(f"| {r['seed']} | {r['noise']:g} m | {r['variant']} | {', '.join(r['set'])} | {_fmt(m['psnr'])} | "
+                   f"{_fmt(m['psnr_agents'])} | {m['n_gaussians']} | {r['wall_s']:.0f} | {base} |")
+    return out + [""]
+
+
 def other_tables(runs: list[dict]) -> list[str]:
     out = []
     kitti = [r for r in runs if r["kind"] == "kitti"]
@@ -188,7 +205,7 @@ def write_report(work: Path, docs: Path, machine: str) -> None:
     lines = [START, "## AGG suite (`bench/agg_suite.py`)", "",
              f"Written {datetime.date.today().isoformat()} on the CI-class VM (2 vCPU, {machine}, torch 2.13 CPU, "
              "one OpenMP thread per run, two runs at a time).", ""]
-    lines += synth_tables(runs) + [""] + other_tables(runs)
+    lines += synth_tables(runs) + [""] + probe_table(runs) + other_tables(runs)
     lines += [f"![{m}]({m})" for m in made] + [END]
     path = docs / "BENCHMARKS.md"
     text = path.read_text() if path.is_file() else "# Benchmarks\n"
