@@ -4,6 +4,7 @@
     python bench/agg_suite.py kitti [--data ../shared/data/kitti06_51] [--preset fast]
     python bench/agg_suite.py presets [--presets fast,balanced] [--seed 0]
     python bench/agg_suite.py probe --set iterations=4000 [--set lr.agent_boost=1] [--seeds 0] [--noise 1.0]
+    python bench/agg_suite.py rescore           # region scores for finished runs whose scenes are on disk
     python bench/agg_suite.py report            # tables -> docs/BENCHMARKS.md section, plots -> docs/*.png
 
 Synthetic runs: ``SceneConfig(seed, frames=24, 320x192)`` with ``NoiseConfig(camera_translation_max=noise,
@@ -127,6 +128,29 @@ def camera_scores(graph, scene_dir: Path, bundle_path: Path) -> dict:
     return out
 
 
+def region_scores(scene_dir: Path) -> dict | None:
+    """Where the held-out error lies, from metrics.json's per-frame rows: the PSNR of the pixels outside the agent
+    masks (pooled over the test frames), the share of pixels that are agent pixels and the share of the squared
+    error they carry. Exact: each frame's full-image MSE is split into its agent and non-agent parts."""
+    meta = json.loads((scene_dir / "scene.json").read_text())
+    path = scene_dir / "metrics.json"
+    if not path.is_file():
+        return None
+    rows = json.loads(path.read_text())["per_frame"]
+    if not rows or any(r["agent_pixels"] is None for r in rows):
+        return None
+    n = meta["width"] * meta["height"]
+    sse = sse_ag = n_ag = 0.0
+    for r in rows:
+        sse += 10.0 ** (-r["psnr"] / 10.0) * n  # per-value MSE x pixels (the 3 channels cancel in the ratios)
+        if r["agent_pixels"]:
+            sse_ag += 10.0 ** (-r["psnr_agents"] / 10.0) * r["agent_pixels"]
+            n_ag += r["agent_pixels"]
+    n_bg = n * len(rows) - n_ag
+    return {"psnr_background": float(-10.0 * np.log10(max(sse - sse_ag, 1e-12) / n_bg)),
+            "agent_pixel_share": n_ag / (n * len(rows)), "agent_error_share": sse_ag / sse}
+
+
 def _run(args, name: str, input_path, preset, row: dict, **kwargs) -> dict | None:
     """Reconstruct ``input_path`` (at ``preset``, a name or a TrainConfig) into work/scenes/NAME and record
     work/runs/NAME.json (``row`` plus wall time, metrics and summary); None when that record exists and ``--force``
@@ -145,6 +169,7 @@ def _run(args, name: str, input_path, preset, row: dict, **kwargs) -> dict | Non
         graph = load_graph(work / "scenes" / name)
         row["topology"] = topology_scores(graph, input_path)
         row["cameras"] = camera_scores(graph, work / "scenes" / name, input_path)
+        row["regions"] = region_scores(work / "scenes" / name)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(row, indent=1))
     print(name, f"{row['wall_s']} s", "PSNR", row["metrics"]["psnr"], "agents", row["metrics"]["psnr_agents"],
@@ -198,6 +223,18 @@ def run_probe(args) -> None:
                      ablate=VARIANTS[variant])
 
 
+def run_rescore(args) -> None:
+    """Add the region scores to finished records whose scene directory is still on disk."""
+    work = Path(args.work)
+    for path in sorted((work / "runs").glob("*.json")):
+        row = json.loads(path.read_text())
+        scene = work / "scenes" / path.stem
+        if row["kind"] in ("synth", "preset", "probe") and (scene / "metrics.json").is_file():
+            row["regions"] = region_scores(scene)
+            path.write_text(json.dumps(row, indent=1))
+            print(path.stem, row["regions"], flush=True)
+
+
 def run_kitti(args) -> None:
     for gt in (False, True):
         _run(args, f"kitti_{args.preset}_{'gt' if gt else 'est'}", args.data, args.preset,
@@ -212,7 +249,7 @@ def run_presets(args) -> None:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("what", choices=["synth", "probe", "kitti", "presets", "report"])
+    p.add_argument("what", choices=["synth", "probe", "kitti", "presets", "rescore", "report"])
     p.add_argument("--work", default=str(ROOT / "bench" / "out" / "agg_suite"))
     p.add_argument("--seeds", default="0,1,2")
     p.add_argument("--seed", type=int, default=0)
@@ -232,7 +269,7 @@ def main(argv=None) -> int:
 
         write_report(Path(args.work), ROOT / "docs", machine=f"{platform.processor() or platform.machine()}")
         return 0
-    {"synth": run_synth, "probe": run_probe, "kitti": run_kitti, "presets": run_presets}[args.what](args)
+    {"synth": run_synth, "probe": run_probe, "rescore": run_rescore, "kitti": run_kitti, "presets": run_presets}[args.what](args)
     return 0
 
 
