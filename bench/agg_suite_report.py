@@ -109,9 +109,9 @@ def synth_tables(runs: list[dict]) -> list[str]:
                        f"{secs:.0f} |")
     regions = [r for r in synth if r.get("regions")]
     if regions:
-        out += ["", "**Where the error lies** (runs that record it): the PSNR of the pixels outside the agent masks, "
-                "pooled over the test frames, the share of the test pixels that are agent pixels and the share of "
-                "the squared error they carry.", "",
+        out += ["", "**Where the error lies** (runs that record it): the PSNR of the pixels outside the agent masks "
+                "(one MSE pooled over the test frames; *PSNR* is the per-frame mean, as above), the share of the test "
+                "pixels that are agent pixels and the share of the squared error they carry.", "",
                 "| Noise | Seed | Variant | PSNR | Agent PSNR | Background PSNR | Agent pixels | Agent share of "
                 "error |", "|---|---|---|---|---|---|---|---|"]
         for r in sorted(regions, key=lambda r: (r["noise"], r["seed"], r["variant"])):
