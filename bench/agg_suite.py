@@ -32,6 +32,7 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
+SYNTHETIC_KINDS = ("synth", "preset", "probe")  # records of synthetic bundles, which have ground-truth scores
 VARIANTS = {"agg": "", "baseline": "all", "no-tick-tock": "tick-tock", "no-semantic": "semantic",
             "no-topology": "topology"}
 
@@ -132,13 +133,13 @@ def region_scores(scene_dir: Path) -> dict | None:
     """Where the held-out error lies, from metrics.json's per-frame rows: the PSNR of the pixels outside the agent
     masks (pooled over the test frames), the share of pixels that are agent pixels and the share of the squared
     error they carry. Exact: each frame's full-image MSE is split into its agent and non-agent parts."""
-    meta = json.loads((scene_dir / "scene.json").read_text())
     path = scene_dir / "metrics.json"
     if not path.is_file():
         return None
     rows = json.loads(path.read_text())["per_frame"]
     if not rows or any(r["agent_pixels"] is None for r in rows):
         return None
+    meta = json.loads((scene_dir / "scene.json").read_text())
     n = meta["width"] * meta["height"]
     sse = sse_ag = n_ag = 0.0
     for r in rows:
@@ -165,7 +166,7 @@ def _run(args, name: str, input_path, preset, row: dict, **kwargs) -> dict | Non
     summary = reconstruct(input_path, work / "scenes" / name, preset, resume=False, **kwargs)
     row = {**row, "preset": preset if isinstance(preset, str) else preset.name,
            "wall_s": round(time.perf_counter() - t0, 1), "metrics": summary.get("metrics"), "summary": summary}
-    if row["kind"] in ("synth", "preset", "probe"):  # synthetic bundles: score the missed and false agents
+    if row["kind"] in SYNTHETIC_KINDS:  # score the missed and false agents, the cameras and the regions
         graph = load_graph(work / "scenes" / name)
         row["topology"] = topology_scores(graph, input_path)
         row["cameras"] = camera_scores(graph, work / "scenes" / name, input_path)
@@ -177,16 +178,21 @@ def _run(args, name: str, input_path, preset, row: dict, **kwargs) -> dict | Non
     return row
 
 
-def run_synth(args) -> None:
+def _synthetic_cases(args):
+    """(seed, noise, variant, bundle path) for every case of ``--seeds`` x ``--noise`` x ``--variants``."""
     for seed in [int(s) for s in args.seeds.split(",")]:
         for noise in [float(n) for n in args.noise.split(",")]:
             for variant in args.variants.split(","):
-                bundle = synth_bundle(Path(args.work), seed, noise, args.frames, args.width, args.height)
-                row = _run(args, f"synth_s{seed}_n{noise:g}_{variant}_{args.preset}", bundle, args.preset,
-                           {"kind": "synth", "seed": seed, "noise": noise, "variant": variant},
-                           ablate=VARIANTS[variant])
-                if row is not None:
-                    print("  topology:", row["topology"]["missed_match"], flush=True)
+                yield seed, noise, variant, synth_bundle(Path(args.work), seed, noise, args.frames, args.width,
+                                                         args.height)
+
+
+def run_synth(args) -> None:
+    for seed, noise, variant, bundle in _synthetic_cases(args):
+        row = _run(args, f"synth_s{seed}_n{noise:g}_{variant}_{args.preset}", bundle, args.preset,
+                   {"kind": "synth", "seed": seed, "noise": noise, "variant": variant}, ablate=VARIANTS[variant])
+        if row is not None:
+            print("  topology:", row["topology"]["missed_match"], flush=True)
 
 
 def probe_config(preset: str, sets: list[str]):
@@ -214,13 +220,10 @@ def run_probe(args) -> None:
     if not args.set:
         raise SystemExit("probe needs at least one --set NAME=VALUE")
     cfg, tag = probe_config(args.preset, args.set)
-    for seed in [int(s) for s in args.seeds.split(",")]:
-        for noise in [float(n) for n in args.noise.split(",")]:
-            for variant in args.variants.split(","):
-                bundle = synth_bundle(Path(args.work), seed, noise, args.frames, args.width, args.height)
-                _run(args, f"probe_s{seed}_n{noise:g}_{variant}_{args.preset}_{tag}", bundle, cfg,
-                     {"kind": "probe", "seed": seed, "noise": noise, "variant": variant, "set": args.set},
-                     ablate=VARIANTS[variant])
+    for seed, noise, variant, bundle in _synthetic_cases(args):
+        _run(args, f"probe_s{seed}_n{noise:g}_{variant}_{args.preset}_{tag}", bundle, cfg,
+             {"kind": "probe", "seed": seed, "noise": noise, "variant": variant, "set": args.set},
+             ablate=VARIANTS[variant])
 
 
 def run_rescore(args) -> None:
@@ -229,7 +232,7 @@ def run_rescore(args) -> None:
     for path in sorted((work / "runs").glob("*.json")):
         row = json.loads(path.read_text())
         scene = work / "scenes" / path.stem
-        if row["kind"] in ("synth", "preset", "probe") and (scene / "metrics.json").is_file():
+        if row["kind"] in SYNTHETIC_KINDS and (scene / "metrics.json").is_file():
             row["regions"] = region_scores(scene)
             path.write_text(json.dumps(row, indent=1))
             print(path.stem, row["regions"], flush=True)
@@ -269,7 +272,9 @@ def main(argv=None) -> int:
 
         write_report(Path(args.work), ROOT / "docs", machine=f"{platform.processor() or platform.machine()}")
         return 0
-    {"synth": run_synth, "probe": run_probe, "rescore": run_rescore, "kitti": run_kitti, "presets": run_presets}[args.what](args)
+    commands = {"synth": run_synth, "probe": run_probe, "rescore": run_rescore, "kitti": run_kitti,
+                "presets": run_presets}
+    commands[args.what](args)
     return 0
 
 
