@@ -88,7 +88,7 @@ def test_the_densifier_reads_the_photometric_gradient_and_the_parameters_the_who
 
     sem, grad2d, params = backward()  # densify_grad="photo", the default
     assert sem is not None and float(sem.detach()) > 0
-    sem_total, grad2d_total, params_total = backward(densify_grad="total")
+    _, grad2d_total, params_total = backward(densify_grad="total")
     _, grad2d_photo, _ = backward(ablate=frozenset({"semantic"}))
     for a, b in zip(params, params_total):  # the parameters step on L_photo + L_sem either way
         torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-9)
