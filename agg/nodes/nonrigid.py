@@ -119,9 +119,9 @@ class NonRigidAgents(RigidAgents):
                 "scales": (self.gaussians.log_scales + ds).exp(), "opacities": g["opacities"], "sh": g["sh"]}
 
     def param_groups(self, prefix: str, gaussian_lrs: dict[str, float], pose_lr: float,
-                     deform_lr: float = 1e-3) -> list[dict]:
+                     deform_lr: float = 1e-3, rotation_lr: float | None = None) -> list[dict]:
         """The rigid groups plus ``prefix#deform`` (the MLP's weights and the instance embeddings)."""
-        return super().param_groups(prefix, gaussian_lrs, pose_lr) + [
+        return super().param_groups(prefix, gaussian_lrs, pose_lr, rotation_lr) + [
             {"name": f"{prefix}#deform", "params": [*self.deform.parameters(), self.embeddings],
              "lr": float(deform_lr)}]
 

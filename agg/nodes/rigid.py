@@ -101,10 +101,13 @@ class RigidAgents(nn.Module):
         # usual approximation (3DGS agents, OmniRe) and exact for degree 0
         return {"means": means, "quats": quats, "scales": g["scales"], "opacities": opacities, "sh": g["sh"]}
 
-    def param_groups(self, prefix: str, gaussian_lrs: dict[str, float], pose_lr: float) -> list[dict]:
-        """``prefix#means`` ... for the Gaussians, ``prefix#omega`` / ``prefix#tau`` for the poses."""
+    def param_groups(self, prefix: str, gaussian_lrs: dict[str, float], pose_lr: float,
+                     rotation_lr: float | None = None) -> list[dict]:
+        """``prefix#means`` ... for the Gaussians, ``prefix#omega`` (rotation, at ``rotation_lr``; ``pose_lr`` when
+        None) / ``prefix#tau`` (translation, at ``pose_lr``) for the poses."""
         return self.gaussians.param_groups(prefix, gaussian_lrs) + [
-            {"name": f"{prefix}#omega", "params": [self.omega], "lr": float(pose_lr)},
+            {"name": f"{prefix}#omega", "params": [self.omega],
+             "lr": float(pose_lr if rotation_lr is None else rotation_lr)},
             {"name": f"{prefix}#tau", "params": [self.tau], "lr": float(pose_lr)}]
 
     def pose_params(self) -> list[nn.Parameter]:

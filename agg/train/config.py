@@ -7,7 +7,8 @@ Tick-Tock alternating every 1/30 until 2/3, then the joint phase; topology evolu
 
 Learning rates: Gaussian means use the 3DGS convention (``lr x scene extent``, decayed exponentially by 100x over
 the run); the agent means and pose-translation rates are raised 10x over OmniRe's while Tick-Tock is on (the paper's
-point: decoupling makes the larger steps safe), and fall back to OmniRe's when it is ablated. Camera and agent pose
+point: decoupling makes the larger steps safe), and fall back to OmniRe's when it is ablated. Agent pose rotations
+keep 1e-5 either way: Sec. 4.2 raises translations only. Camera and agent pose
 rates are per step in scene units (radians / metres): the paper's 1e-5 suits 30k steps on GPU-scale images; the
 shorter presets scale them by ``30000 / iterations`` so a preset can move a pose as far in total.
 """
@@ -35,6 +36,7 @@ class LearningRates:
     camera: float = 1e-5  # translation, per step at the paper's 30k iterations (scaled, see module doc)
     camera_rotation: float = 1e-5  # radians, per step at 30k iterations (the paper's camera rate)
     agent_pose: float = 1e-5  # translation; x agent_boost while Tick-Tock is on (paper: 1e-4)
+    agent_rotation: float = 1e-5  # radians, never boosted: Sec. 4.2 raises pose translations only (OmniRe: 1e-5)
     deform: float = 1e-3
     agent_boost: float = 10.0
     joint_decay: float = 0.1  # every lr x this in the joint phase

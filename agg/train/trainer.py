@@ -128,11 +128,12 @@ class Trainer:
             if node is None:
                 continue
             lrs = gaussian_lrs(lr.agent_means * boost)
-            pose_lr = lr.agent_pose * boost * pose_scale
+            pose_lr = lr.agent_pose * boost * pose_scale  # translation: raised with Tick-Tock on
+            rotation_lr = lr.agent_rotation * pose_scale  # never raised (the paper raises translations only)
             if name == "nonrigid":
-                out["agents"] += node.param_groups(name, lrs, pose_lr, lr.deform)
+                out["agents"] += node.param_groups(name, lrs, pose_lr, lr.deform, rotation_lr)
             else:
-                out["agents"] += node.param_groups(name, lrs, pose_lr)
+                out["agents"] += node.param_groups(name, lrs, pose_lr, rotation_lr)
         for groups in out.values():
             for grp in groups:
                 grp["base_lr"] = grp["lr"]
