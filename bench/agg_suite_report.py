@@ -111,14 +111,18 @@ def synth_tables(runs: list[dict]) -> list[str]:
     if regions:
         out += ["", "**Where the error lies** (runs that record it): the PSNR of the pixels outside the agent masks "
                 "(one MSE pooled over the test frames; *PSNR* is the per-frame mean, as above), the share of the test "
-                "pixels that are agent pixels and the share of the squared error they carry.", "",
+                "pixels that are agent pixels and the share of the squared error they carry. *Perfect agents*: "
+                "the most that rendering the agent pixels without error could add to the pooled PSNR, "
+                "−10·log10(1 − agent share of error).", "",
                 "| Noise | Seed | Variant | PSNR | Agent PSNR | Background PSNR | Agent pixels | Agent share of "
-                "error |", "|---|---|---|---|---|---|---|---|"]
+                "error | Perfect agents (dB) |", "|---|---|---|---|---|---|---|---|---|"]
         for r in sorted(regions, key=lambda r: (r["noise"], r["seed"], r["variant"])):
             g, m = r["regions"], r["metrics"]
+            ceiling = -10 * np.log10(max(1.0 - g["agent_error_share"], 1e-12))
             out.append(f"| {r['noise']:g} | {r['seed']} | {r['variant']} | {_fmt(m['psnr'])} | "
                        f"{_fmt(m['psnr_agents'])} | {_fmt(g['psnr_background'])} | "
-                       f"{100 * g['agent_pixel_share']:.1f} % | {100 * g['agent_error_share']:.1f} % |")
+                       f"{100 * g['agent_pixel_share']:.1f} % | {100 * g['agent_error_share']:.1f} % | "
+                       f"+{ceiling:.2f} |")
     wall = [r["wall_s"] for r in synth]
     out += ["", f"Wall time per run: {min(wall):.0f}–{max(wall):.0f} s."]
     return out
