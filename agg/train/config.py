@@ -8,9 +8,9 @@ Tick-Tock alternating every 1/30 until 2/3, then the joint phase; topology evolu
 Learning rates: Gaussian means use the 3DGS convention (``lr x scene extent``, decayed exponentially by 100x over
 the run); the agent means and pose-translation rates are raised 10x over OmniRe's while Tick-Tock is on (the paper's
 point: decoupling makes the larger steps safe), and fall back to OmniRe's when it is ablated. Agent pose rotations
-keep 1e-5 either way: Sec. 4.2 raises translations only. Camera and agent pose
-rates are per step in scene units (radians / metres): the paper's 1e-5 suits 30k steps on GPU-scale images; the
-shorter presets scale them by ``30000 / iterations`` so a preset can move a pose as far in total.
+keep 1e-5 either way: Sec. 4.2 raises translations only. Camera and agent pose rates are per step in scene units
+(radians / metres): the paper's 1e-5 suits 30k steps on GPU-scale images; the shorter presets scale them by
+``30000 / iterations`` so a preset can move a pose as far in total.
 """
 
 from __future__ import annotations
