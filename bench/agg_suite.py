@@ -264,6 +264,9 @@ def run_rescore(args) -> None:
         row = json.loads(path.read_text())
         scene = work / "scenes" / path.stem
         if row["kind"] in SYNTHETIC_KINDS and (scene / "metrics.json").is_file():
+            if json.loads((scene / "metrics.json").read_text())["psnr"] != row["metrics"]["psnr"]:
+                print(path.stem, "skipped: the scene on disk is not the one this record scored", flush=True)
+                continue
             row["regions"] = region_scores(scene)
             bundle = synth_bundle(work, row["seed"], row["noise"], args.frames, args.width, args.height)
             row["agent_poses"] = agent_pose_scores(load_graph(scene), bundle)
