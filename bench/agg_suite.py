@@ -110,6 +110,7 @@ def agent_pose_scores(graph, bundle_path: Path) -> dict | None:
     box-centre error (m) and rotation error (deg) over its valid frames; then the median over agents."""
     import torch
 
+    from agg.eval.trajectory import rotation_angle_deg
     from agg.synth.suite import load_gt_extras
 
     extras = load_gt_extras(bundle_path)
@@ -123,10 +124,10 @@ def agent_pose_scores(graph, bundle_path: Path) -> dict | None:
             gt = extras["world_from_agent"][ids.index(tid)][valid]  # [F, 4, 4]
             with torch.no_grad():
                 est = np.stack([node.world_from_box(t)[j].numpy() for t in np.flatnonzero(valid)])  # [F, 4, 4]
-            cos = (np.einsum("fij,fij->f", est[:, :3, :3], gt[:, :3, :3]) - 1.0) / 2.0  # trace(R_est^T R_gt)
+            rot = np.swapaxes(est[:, :3, :3], 1, 2) @ gt[:, :3, :3]  # [F, 3, 3] R_est^T R_gt
             per_agent[str(tid)] = {"translation_m": float(np.median(np.linalg.norm(est[:, :3, 3] - gt[:, :3, 3],
                                                                                      axis=1))),
-                                   "rotation_deg": float(np.median(np.degrees(np.arccos(np.clip(cos, -1, 1)))))}
+                                   "rotation_deg": float(np.median(rotation_angle_deg(rot)))}
     if not per_agent:
         return None
     return {"translation_m": float(np.median([a["translation_m"] for a in per_agent.values()])),
