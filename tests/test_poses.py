@@ -1,6 +1,7 @@
 """Camera-pose prior: outlier check and repair, interpolation, KITTI writer, intrinsics, and real runs of
 pycolmap SfM and the OpenCV VO fallback on KITTI frames (skipped when the data is absent)."""
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -58,7 +59,7 @@ def test_planted_95_degree_outlier_is_caught_and_repaired(frame):
     valid[outliers] = False
     repaired = interpolate_poses(bad, valid)
     err = rotation_angle_deg(repaired[frame, :3, :3].T @ truth[frame, :3, :3])
-    assert err < 0.5  # interior: slerp is exact-ish on the arc; ends: nearest neighbour, 0.4 deg off
+    assert err < 0.5  # interior: slerp is exact-ish on the arc; ends: constant velocity, exact on the arc
     assert np.linalg.norm(repaired[frame, :3, 3] - truth[frame, :3, 3]) <= 1.0 + 1e-9
     assert find_pose_outliers(truth, np.ones(len(truth), bool), PoseConfig()) == []  # no false alarms
 
@@ -75,6 +76,42 @@ def test_two_adjacent_outliers_and_unregistered_gap():
     ang = rotation_angle_deg(np.einsum("nji,njk->nik", repaired[:, :3, :3], truth[:, :3, :3]))
     assert ang.max() < 1e-6  # constant-rate yaw: slerp reproduces it
     np.testing.assert_allclose(repaired[6, :3, 3], truth[6, :3, 3], atol=0.02)  # chord vs arc (1.4 cm)
+
+
+def test_ends_are_extrapolated_at_constant_velocity():
+    truth = _smooth_arc()
+    valid = np.ones(len(truth), bool)
+    valid[:2] = valid[-3:] = False  # unregistered at both ends
+    repaired = interpolate_poses(truth + np.where(valid, 0.0, 5.0)[:, None, None], valid)
+    ang = rotation_angle_deg(np.einsum("nji,njk->nik", repaired[:, :3, :3], truth[:, :3, :3]))
+    assert ang.max() < 1e-6  # constant-rate yaw, extrapolated at that rate
+    gap = np.linalg.norm(repaired[:, :3, 3] - truth[:, :3, 3], axis=1)
+    assert gap.max() < 0.07  # the chord's velocity on the arc, 3 frames out: 6 cm (holding the last pose: 3 m)
+    one = interpolate_poses(truth, np.eye(1, len(truth), 5, dtype=bool)[0])  # a single valid frame: copied
+    np.testing.assert_allclose(one, np.broadcast_to(truth[5], truth.shape))
+
+
+def test_a_last_frame_registered_a_step_too_far_is_caught():
+    """A real encoding of the synthetic clip of tests/test_priors_command.py (libx264's output varies from run to
+    run; this one made SfM register frame 13 a step too far and 2.3 deg turned, and the path 3.4 % off). The
+    direction-of-travel check flags it and the end is extrapolated."""
+    import av
+
+    from agg.synth.scene import SceneConfig
+    from agg.synth.suite import render_clip
+
+    gt = render_clip(SceneConfig(seed=1, frames=14, width=320, height=192, moving_cars=2, parked_cars=2,
+                                 pedestrians=1))
+    with av.open(str(Path(__file__).parent / "data" / "synth_s1_last_frame_too_far.mp4")) as c:
+        frames = np.stack([f.to_ndarray(format="rgb24") for f in c.decode(video=0)])
+    cfg = PoseConfig.preset("fast")
+    res = estimate_poses(frames, gt.K, cfg)
+    assert res.outliers == [13] and res.source[13] == "interpolated"
+    assert res.diagnostics["epipolar_pair_t_deg"][12] > 45.0
+    assert evaluate_trajectory(res.world_from_camera, gt.world_from_camera).ate_percent_of_path < 1.0
+    unchecked = estimate_poses(frames, gt.K, replace(cfg, epipolar_max_t_deg=180.0))
+    assert unchecked.outliers == []
+    assert evaluate_trajectory(unchecked.world_from_camera, gt.world_from_camera).ate_percent_of_path > 2.0
 
 
 def test_write_kitti_poses_roundtrip(tmp_path):

@@ -3,10 +3,10 @@
 ``estimate_poses``: frames are resized and written as PNGs with OpenCV here; pycolmap runs in a separate process
 (``_sfm_worker.py``; the two in one process crashed, GUIDE.md) with CPU SIFT, sequential matching over a true
 N-frame overlap, no loop detection and loosened start-up thresholds; the largest model is kept. Registered
-poses are checked (``epipolar_check``: OpenCV essential matrices on consecutive pairs, per frame and as a
-clip-level "bend"; ``find_pose_outliers``: smoothness against slerp/lerp of the neighbours), outliers and
-unregistered frames are interpolated, and OpenCV essential-matrix VO (``visual_odometry``) replaces SfM when too
-few frames register. World = first camera (``world_from_camera[0] = I``), OpenCV axes; the scale is normalised
+poses are checked (``agg.priors.pose_checks``: OpenCV essential matrices on consecutive pairs, per frame and as
+a clip-level "bend", and smoothness against slerp/lerp of the neighbours), outliers and unregistered frames are
+interpolated (constant velocity beyond the ends), and OpenCV essential-matrix VO (``visual_odometry``) replaces SfM
+when too few frames register. World = first camera (``world_from_camera[0] = I``), OpenCV axes; the scale is normalised
 so the median sparse depth is 1 (VO: mean step 1). Details, thresholds and the confidence rule: docs/PRIORS.md.
 """
 
@@ -22,10 +22,14 @@ import numpy as np
 
 from agg.priors._sfm_worker import run_worker
 from agg.priors.intrinsics import CameraIntrinsics, intrinsics_for_frames
-
-
-class PoseEstimationError(ValueError):
-    """Bad input to pose estimation (no frames, inconsistent sizes, unreadable paths)."""
+from agg.priors.pose_checks import (
+    PoseEstimationError,
+    epipolar_check,
+    find_pose_outliers,
+    interpolate_poses,
+    track_corners,
+    two_view_motion,
+)
 
 
 @dataclass(frozen=True)
@@ -52,6 +56,10 @@ class PoseConfig:
     outlier_min_deg: float = 5.0
     outlier_k: float = 5.0
     epipolar_max_deg: float = 3.0  # per-pair rotation disagreement with the essential matrix
+    epipolar_max_t_deg: float = 45.0  # per-pair direction-of-travel disagreement: at most 5.3 deg on KITTI 06 and
+    #                                  the dashcam clip, 26 deg on synthetic 320x192 clips, 65-78 deg where the
+    #                                  last frame of a 14-frame clip was registered a step too far
+    epipolar_min_flow_px: float = 2.0  # ... checked only where the pair's median flow defines a direction
     max_bend_deg: float = 3.0  # clip-level accumulated disagreement (E chains themselves drift ~1 deg on KITTI)
     normalize_scale: bool = True
     use_sfm: bool = True  # False: VO only
@@ -107,167 +115,6 @@ class PoseResult:
     diagnostics: dict = field(default_factory=dict)
 
 
-# ----------------------------------------------------------------------------------------------- rotations
-def _angle_deg(r: np.ndarray) -> np.ndarray:
-    """Rotation angle (deg) of [..., 3, 3]."""
-    return np.degrees(np.arccos(np.clip((np.trace(r, axis1=-2, axis2=-1) - 1) / 2, -1, 1)))
-
-
-def _slerp(ra: np.ndarray, rb: np.ndarray, f: float) -> np.ndarray:
-    from scipy.spatial.transform import Rotation
-
-    rel = Rotation.from_matrix(ra.T @ rb).as_rotvec()
-    return ra @ Rotation.from_rotvec(f * rel).as_matrix()
-
-
-def interpolate_poses(world_from_camera: np.ndarray, valid: np.ndarray) -> np.ndarray:
-    """Fill invalid frames [T] from valid ones: linear centre, slerp rotation, nearest pose beyond the ends."""
-    out = np.array(world_from_camera, float, copy=True)
-    idx = np.flatnonzero(valid)
-    if len(idx) == 0:
-        raise PoseEstimationError("no valid pose to interpolate from")
-    for i in np.flatnonzero(~np.asarray(valid)):
-        k = np.searchsorted(idx, i)
-        if k == 0 or k == len(idx):
-            out[i] = out[idx[0] if k == 0 else idx[-1]]
-            continue
-        p, n = idx[k - 1], idx[k]
-        f = (i - p) / (n - p)
-        out[i] = np.eye(4)
-        out[i, :3, :3] = _slerp(out[p, :3, :3], out[n, :3, :3], f)
-        out[i, :3, 3] = (1 - f) * out[p, :3, 3] + f * out[n, :3, 3]
-    return out
-
-
-def find_pose_outliers(
-    world_from_camera: np.ndarray, valid: np.ndarray, config: PoseConfig = PoseConfig(), depth_ref: float = 0.0
-) -> list[int]:
-    """Frames whose pose breaks the smoothness of their valid neighbours (see module docstring, check (b)).
-
-    ``depth_ref`` (world units, e.g. median scene depth) floors the translation threshold so a stationary
-    camera's jitter is not flagged.
-    """
-    valid = np.array(valid, bool, copy=True)
-    r, c = world_from_camera[:, :3, :3], world_from_camera[:, :3, 3]
-    outliers: list[int] = []
-    while valid.sum() >= 4:
-        idx = np.flatnonzero(valid)
-        gaps = np.diff(idx)
-        step_rot = _angle_deg(np.einsum("nji,njk->nik", r[idx[:-1]], r[idx[1:]])) / gaps
-        step_t = np.linalg.norm(np.diff(c[idx], axis=0), axis=1) / gaps
-        rot_thr = max(config.outlier_min_deg, config.outlier_k * float(np.median(step_rot)))
-        t_thr = config.outlier_k * max(float(np.median(step_t)), 0.004 * depth_ref, 1e-9)
-        score = np.zeros(len(idx))
-        for k, i in enumerate(idx):
-            if 0 < k < len(idx) - 1:
-                p, n = idx[k - 1], idx[k + 1]
-                f = (i - p) / (n - p)
-                r_pred, c_pred = _slerp(r[p], r[n], f), (1 - f) * c[p] + f * c[n]
-                g = min(i - p, n - i)
-            else:  # an end: constant-velocity extrapolation from the two nearest valid frames
-                a, b = (idx[1], idx[2]) if k == 0 else (idx[-2], idx[-3])
-                f = (i - a) / (a - b)
-                r_pred = _slerp(r[a], r[b], -f) if abs(f) <= 3 else r[a]
-                c_pred = c[a] + f * (c[a] - c[b])
-                g = abs(i - a)
-            rot_err = float(_angle_deg(r_pred.T @ r[i]))
-            score[k] = max(rot_err / (rot_thr * max(1, g)), np.linalg.norm(c[i] - c_pred) / (t_thr * max(1, g)))
-        worst = int(np.argmax(score))
-        if score[worst] <= 1.0:
-            break
-        valid[idx[worst]] = False
-        outliers.append(int(idx[worst]))
-    return sorted(outliers)
-
-
-# ------------------------------------------------------------------------------------- two-view geometry
-def _tracks(gray_a, others, K, dist, max_corners):  # noqa: N803
-    """Corners of ``gray_a`` tracked (LK, forward-backward checked) into every image of ``others``.
-
-    Returns (pa [n, 2], [pb [n, 2] per other]) in undistorted pixel coordinates, kept where all tracks held.
-    """
-    import cv2
-
-    empty = (np.zeros((0, 2)), [np.zeros((0, 2)) for _ in others])
-    pa = cv2.goodFeaturesToTrack(gray_a, maxCorners=max_corners, qualityLevel=0.01, minDistance=7)
-    if pa is None or len(pa) < 8:
-        return empty
-    lk = dict(winSize=(21, 21), maxLevel=4, criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01))
-    ok = np.ones(len(pa), bool)
-    pbs = []
-    for gray_b in others:
-        pb, st, _ = cv2.calcOpticalFlowPyrLK(gray_a, gray_b, pa, None, **lk)
-        pa2, st2, _ = cv2.calcOpticalFlowPyrLK(gray_b, gray_a, pb, None, **lk)
-        ok &= (st[:, 0] == 1) & (st2[:, 0] == 1) & (np.linalg.norm((pa2 - pa)[:, 0], axis=1) < 0.5)
-        pbs.append(pb)
-    out = []
-    for p in [pa, *pbs]:
-        p = p[ok].reshape(-1, 1, 2).astype(np.float64)
-        if dist is not None and np.any(dist) and len(p):
-            p = cv2.undistortPoints(p, K, dist, P=K)
-        out.append(p.reshape(-1, 2))
-    return out[0], out[1:]
-
-
-def two_view_motion(gray_a, gray_b, K, dist=None, max_corners: int = 2000) -> dict:  # noqa: N803
-    """Relative motion ``b_from_a`` (R [3,3], unit t [3]) from an OpenCV essential matrix on LK tracks.
-
-    Also returns the tracks (pixels, undistorted), the inlier mask, and the median flow (px). OpenCV's RANSAC
-    draws from a process-wide generator; it is reseeded here so a pair's answer does not depend on what ran
-    before it in the process.
-    """
-    import cv2
-
-    pa, (pb,) = _tracks(gray_a, [gray_b], K, dist, max_corners)
-    res = {"R": np.eye(3), "t": np.zeros(3), "inliers": 0, "flow": 0.0, "pa": pa, "pb": pb,
-           "mask": np.zeros(len(pa), bool), "ok": False}
-    if len(pa) < 8:
-        return res
-    res["flow"] = float(np.median(np.linalg.norm(pb - pa, axis=1)))
-    cv2.setRNGSeed(0)
-    E, mask = cv2.findEssentialMat(pa, pb, K, method=cv2.RANSAC, prob=0.999, threshold=1.0)  # noqa: N806
-    if E is None or E.shape != (3, 3):
-        return res
-    n, R, t, mask2 = cv2.recoverPose(E, pa, pb, K, mask=mask.copy())  # noqa: N806
-    res.update(R=R, t=t.reshape(3), inliers=int(n), mask=mask2.reshape(-1) > 0, ok=n >= 8)
-    return res
-
-
-def epipolar_check(grays, world_from_camera, valid, K, dist=None, config=PoseConfig()) -> dict:  # noqa: N803
-    """Compare SfM rotations of consecutive valid frames with essential-matrix rotations (check (a)).
-
-    Returns per-pair disagreement ``pair_deg`` [T-1] (NaN where not checked), frame outliers (disagree with
-    both neighbours, or the only neighbour), and ``bend_deg``: the angle between the chained essential-matrix
-    rotations and SfM's rotation over the longest run of consecutive valid frames.
-    """
-    n = len(grays)
-    pair = np.full(n - 1, np.nan)
-    r_sfm_chain, r_e_chain = np.eye(3), np.eye(3)
-    run, best_run, best_bend = 0, 0, 0.0
-    for i in range(n - 1):
-        if not (valid[i] and valid[i + 1]):
-            r_sfm_chain, r_e_chain, run = np.eye(3), np.eye(3), 0
-            continue
-        m = two_view_motion(grays[i], grays[i + 1], K, dist, config.vo_max_corners)
-        r_sfm = world_from_camera[i + 1, :3, :3].T @ world_from_camera[i, :3, :3]  # cam_{i+1}_from_cam_i
-        if not m["ok"]:
-            continue
-        pair[i] = float(_angle_deg(m["R"].T @ r_sfm))
-        r_sfm_chain, r_e_chain, run = r_sfm @ r_sfm_chain, m["R"] @ r_e_chain, run + 1
-        if run >= best_run:
-            best_run, best_bend = run, float(_angle_deg(r_e_chain.T @ r_sfm_chain))
-    bad = np.nan_to_num(pair, nan=0.0) > config.epipolar_max_deg
-    checked = ~np.isnan(pair)
-    outliers = []
-    for i in range(n):
-        left = bad[i - 1] if i > 0 and checked[i - 1] else None
-        right = bad[i] if i < n - 1 and checked[i] else None
-        votes = [v for v in (left, right) if v is not None]
-        if valid[i] and votes and all(votes) and (len(votes) == 2 or n <= 2 or i in (0, n - 1)):
-            outliers.append(i)
-    return {"pair_deg": pair, "outliers": outliers, "bend_deg": best_bend, "bad_pairs": bad}
-
-
 # ------------------------------------------------------------------------------------------ visual odometry
 def visual_odometry(grays: np.ndarray, K: np.ndarray, dist=None, config: PoseConfig = PoseConfig()):  # noqa: N803
     """Chained essential-matrix VO. Returns ``world_from_camera`` [T, 4, 4] (frame 0 = I) and inliers [T].
@@ -300,7 +147,8 @@ def visual_odometry(grays: np.ndarray, K: np.ndarray, dist=None, config: PoseCon
         scales[i] = prev_scale
         if i > 0 and scales[i - 1] > 0 and motions[i - 1]["ok"]:
             # corners of frame i tracked back to i-1 and forward to i+1, triangulated with both pairs
-            p_i, (p_prev, p_next) = _tracks(grays[i], [grays[i - 1], grays[i + 1]], K, dist, config.vo_max_corners)
+            p_i, (p_prev, p_next) = track_corners(grays[i], [grays[i - 1], grays[i + 1]], K, dist,
+                                                  config.vo_max_corners)
             if len(p_i) >= 20:
                 mp = motions[i - 1]  # cam_i_from_cam_{i-1}: unit t times scales[i-1]
                 _, z_prev = depths_in_a(p_prev, p_i, mp["R"], mp["t"] * scales[i - 1])
@@ -484,7 +332,8 @@ def _finish_sfm(best, n, intr, work, refine, cfg, grays, size) -> PoseResult:
         world_from_camera=poses, source=source, confidence=conf, registered_fraction=float(reg.mean()),
         intrinsics=intr_out if refine else replace(intr_out, fx=intr.fx, fy=intr.fy, cx=intr.cx, cy=intr.cy),
         points=points, outliers=outliers, method="sfm", scale_applied=scale,
-        diagnostics={"epipolar_pair_deg": epi["pair_deg"].tolist(), "bend_deg": epi["bend_deg"],
+        diagnostics={"epipolar_pair_deg": epi["pair_deg"].tolist(),
+                     "epipolar_pair_t_deg": epi["pair_t_deg"].tolist(), "bend_deg": epi["bend_deg"],
                      "median_depth_sfm_units": depth_ref, "intrinsics_in": asdict(intr) | {"dist": intr.dist.tolist()}},
     )
 
