@@ -92,6 +92,12 @@ def test_a_missed_moving_car_is_spawned_on_its_trajectory(missed):
         drawn = graph.render(frame, colors=colors).color[..., 0].numpy() > 0.5
     car = extras["instance"][frame] == missed_id
     assert (drawn & car).sum() / car.sum() > 0.5
+    # later evolutions (and the trainer, when training ends) re-anchor the spawned box: renders do not change
+    assert topo.state_dict()["spawned_ids"] == [new_id]
+    with torch.no_grad():
+        before = graph.render(frame).color
+        moved = topo.reanchor(graph)
+        assert list(moved) == [str(new_id)] and torch.allclose(graph.render(frame).color, before, atol=1e-4)
 
 
 def test_a_dead_false_agent_is_pruned(tmp_path):

@@ -60,6 +60,8 @@ class _Bar:
             self.bar.refresh()
         elif e.get("event") == "topology" and self.bar is not None:
             self.bar.write(f"topology: {json.dumps(e['report'])}")
+        elif e.get("event") == "reanchor" and self.bar is not None:
+            self.bar.write(f"spawned boxes re-anchored (offset in m, box frame): {json.dumps(e['reanchored'])}")
         elif e.get("event") == "tracking" and self.bar is not None:
             r = e["report"]
             losses = ", ".join(f"1/{lv['level']}: {lv['loss_first']:.4f} -> {lv['loss_last']:.4f}"

@@ -44,7 +44,8 @@ pose prior is the track, its centroids moved from the visible surface to the box
 (``topology_track.spawn_trajectory``: a box of the graph's median agent size or ``rigid_size_m``, yaw from the
 ground velocity, its surface weighted by solid angle, and Gauss-Newton passes that leave out the part of the box
 outside the image, for a car cut off by the image edge); its track id is one more than every id seen so far
-(never reused).
+(never reused). At each later evolution (and when training ends) a spawned agent's box is re-anchored on its own
+rendered surface (``topology_anchor``): the gradient clusters crowd a moving car's leading edge, so its box leads.
 **Pruning**: an instance whose ``prune_quantile`` opacity quantile is below ``prune_opacity`` or that has fewer
 than ``min_agent_gaussians`` Gaussians is removed (before matching, so dead agents absorb nothing). A false agent
 that does not die out (it keeps rendering the road it was initialised on) is **demoted** when it is static and not
@@ -62,6 +63,7 @@ from torch import Tensor
 
 from agg.nodes.gaussians import PARAM_NAMES, GaussianParams, append_rows, keep_rows
 from agg.nodes.rigid import RigidAgents, matrix_to_quat, quat_multiply
+from agg.train import topology_anchor as ta
 from agg.train import topology_demote as td
 from agg.train import topology_track as tt
 from agg.train.topology_demote import DemoteConfig
@@ -98,6 +100,9 @@ class TopologyConfig:
     rigid_size_m: tuple[float, float, float] = (4.5, 1.8, 1.6)  # (l, w, h) of a spawned agent when the graph
     nonrigid_size_m: tuple[float, float, float] = (0.7, 0.7, 1.75)  # has no instance of its class to copy
     reset_after_evolve: bool = True  # start the gradient statistics afresh after each evolution
+    reanchor: bool = True  # move a spawned agent's box onto its own rendered surface (topology_anchor) at each
+    # later evolution and when training ends, ...
+    reanchor_min_fit: float = 0.7  # ... when the moved box holds this share of that surface (topology_anchor)
     demote: DemoteConfig = DemoteConfig()  # static, not agent-like instances become background (topology_demote)
 
     def scaled(self, factor: float) -> "TopologyConfig":
@@ -176,6 +181,7 @@ class TopologyEvolution:
         self.sum: Tensor | None = None  # [T, N] summed gradient norms
         self.count: Tensor | None = None  # [T] renders accumulated per frame
         self.retired: set[int] = set(int(i) for i in reserved_ids)  # ids never to reuse
+        self.spawned_ids: set[int] = set()  # ids this evolution spawned (their boxes are re-anchored)
         self.evolutions = 0
 
     # ------------------------------------------------------------------ statistics
@@ -328,6 +334,7 @@ class TopologyEvolution:
         pruned, pruned_nodes = self._prune(graph, optimizer)
         demoted, demoted_nodes, rows = self._demote(graph, optimizer)
         self.retired |= set(pruned) | set(demoted)
+        anchored = self.reanchor(graph) if cfg.reanchor else {}
         bg = graph.background
         n_old = len(bg)
         for extra in rows:
@@ -339,7 +346,7 @@ class TopologyEvolution:
         changed = pruned_nodes | demoted_nodes | ({"background"} if n_bg > n_old else set())
         report = {"iteration": iteration, "reassigned": 0, "spawned": [], "spawned_classes": [],
                   "pruned": pruned + demoted, "demoted": demoted, "candidates": 0, "clusters": 0, "tracks": 0,
-                  "track_runs": [],
+                  "track_runs": [], "reanchored": anchored,
                   "structure_changed": bool(pruned or demoted), "new_nodes": [], "rows_changed": sorted(changed),
                   "bg_src": src}
         if self.sum is None or not bool((self.count > 0).any()):
@@ -385,6 +392,12 @@ class TopologyEvolution:
                 target[inside], target_frame[inside], depth_in_box[inside] = (a, k), t, d
         spawn = plan_spawns(self, graph, unmatched, means, target[:, 0] >= 0, has, report)
         return self._apply(graph, optimizer, report, target, target_frame, boxes, spawn)
+
+    def reanchor(self, graph) -> dict[str, dict]:
+        """Move each spawned agent's box origin onto the centre its own rendered surface implies (renders do not
+        change: ``topology_anchor``); {track id (str): offset (box frame, metres), fit, applied}."""
+        return ta.reanchor_spawned(graph, self.spawned_ids, self.box_half, self.config.near_m * self.unit,
+                                   1.0 / self.unit, min_fit=self.config.reanchor_min_fit)
 
     def _match(self, boxes: list[dict], t: int, centre: np.ndarray) -> tuple[int, int] | None:
         """The (node, instance) whose grown box at frame t holds ``centre`` (nearest box centre when several)."""
@@ -450,6 +463,7 @@ class TopologyEvolution:
                                   if p.get("half") is not None})
             report["spawned_classes"] = [p["class"] for p in spawn]
             self.retired |= set(ids)
+            self.spawned_ids |= set(ids)
         report["structure_changed"] = bool(report["pruned"] or report["spawned"] or report["new_nodes"])
         report["rows_changed"] = sorted(rows_changed | set(report["rows_changed"]))
         report["bg_src"] = report["bg_src"][keep]
@@ -465,6 +479,7 @@ class TopologyEvolution:
         return {"sum": None if self.sum is None else self.sum.detach().cpu().clone(),
                 "count": None if self.count is None else self.count.detach().cpu().clone(),
                 "retired": sorted(self.retired), "evolutions": self.evolutions,
+                "spawned_ids": sorted(self.spawned_ids),
                 "box_half": {k: v.tolist() for k, v in self.box_half.items()}}
 
     def load_state_dict(self, state: dict, device=None) -> None:
@@ -473,5 +488,6 @@ class TopologyEvolution:
         self.count = None if state["count"] is None else torch.as_tensor(state["count"]).to(device or "cpu")
         self.retired = set(int(i) for i in state["retired"])
         self.evolutions = int(state["evolutions"])
+        self.spawned_ids = set(int(i) for i in state.get("spawned_ids", []))
         if "box_half" in state:
             self.box_half = {int(k): np.asarray(v, np.float64) for k, v in state["box_half"].items()}

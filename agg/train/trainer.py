@@ -32,7 +32,7 @@ from agg.train.tick_tock import GROUPS, TickTockSchedule, set_trainable
 
 # what the topology log keeps of each evolution's report
 LOG_KEYS = ("iteration", "candidates", "clusters", "tracks", "track_runs", "reassigned", "spawned", "pruned",
-            "demoted")
+            "demoted", "reanchored")
 
 
 class Cancelled(Exception):
@@ -67,6 +67,7 @@ class Trainer:
         self.spawned: list[int] = []
         self.pruned: list[int] = []
         self.topology_log: list[dict] = []  # one compact row per evolution (counts, ids, track runs)
+        self.reanchored: dict[str, dict] = {}  # spawned track id -> re-anchoring when training ended (offset, fit)
         self.generator = torch.Generator().manual_seed(int(cfg.seed))
         self.order: list[int] = []
         dcfg = DensifyConfig(grad_threshold=cfg.grad_threshold, refine_start=cfg.densify_from,
@@ -366,7 +367,16 @@ class Trainer:
                           agents_spawned=len(self.spawned), agents_pruned=len(self.pruned), eta_s=eta)
             if every and self.iteration % every == 0:
                 self._checkpoint(checkpoint)
+        self._reanchor()
         return self.history
+
+    def _reanchor(self) -> None:
+        """When training ends: re-anchor the spawned agents' boxes on their rendered surfaces (renders do not
+        change; ``agg.train.topology_anchor``); ``self.reanchored`` keeps the offsets, fits and whether applied."""
+        if self.topology is None or not self.topology.config.reanchor or not self.topology.spawned_ids:
+            return
+        self.reanchored = self.topology.reanchor(self.graph)
+        self.emit(event="reanchor", iteration=self.iteration, reanchored=self.reanchored)
 
     def _checkpoint(self, path: Path | None) -> None:
         if path is not None and (self.checkpoint_ok is None or self.checkpoint_ok()):
