@@ -4,6 +4,7 @@
     python bench/agg_suite.py kitti [--data ../shared/data/kitti06_51] [--preset fast]
     python bench/agg_suite.py presets [--presets fast,balanced] [--seed 0]
     python bench/agg_suite.py probe --set iterations=4000 [--set lr.agent_boost=1] [--seeds 0] [--noise 1.0]
+                                    [--agent-noise 1.0]
     python bench/agg_suite.py rescore           # region / agent-pose scores of runs whose scenes are on disk
     python bench/agg_suite.py report            # tables -> docs/BENCHMARKS.md section, plots -> docs/*.png
 
@@ -15,7 +16,9 @@ Variants: ``agg`` (everything on), ``baseline`` (``--ablate all``: the fixed-top
 ``no-tick-tock``, ``no-semantic``, ``no-topology``.
 ``probe`` runs the same synthetic variants at ``--preset`` with training options replaced (``--set NAME=VALUE``,
 ``lr.NAME`` for a learning-rate field; milestones scale with ``iterations``), to ask what a component's worth
-depends on. Its records are kind "probe" and stay out of the suite's tables.
+depends on. Its records are kind "probe" and stay out of the suite's tables. ``--agent-noise`` adds noise to the
+tracklet box centres too (the suite's priors keep them exact; only the cameras are noisy, as in the paper's stress
+test), so a probe can ask what the agent rates are worth when the agent priors are wrong.
 """
 
 from __future__ import annotations
@@ -38,14 +41,18 @@ VARIANTS = {"agg": "", "baseline": "all", "no-tick-tock": "tick-tock", "no-seman
             "no-topology": "topology"}
 
 
-def synth_bundle(work: Path, seed: int, noise: float, frames: int, width: int, height: int) -> Path:
+def synth_bundle(work: Path, seed: int, noise: float, frames: int, width: int, height: int,
+                 agent_noise: float = 0.0) -> Path:
+    """The suite's bundle of ``seed`` with camera-centre noise ``noise`` (m); ``agent_noise`` (m, probes only) also
+    moves every tracklet box centre by up to that much per frame (the suite itself keeps the boxes exact)."""
     from agg.synth.corrupt import NoiseConfig
     from agg.synth.scene import SceneConfig
     from agg.synth.suite import generate, write_bundle
 
-    path = work / "bundles" / f"s{seed}_n{noise:g}"
+    path = work / "bundles" / (f"s{seed}_n{noise:g}" + (f"_a{agent_noise:g}" if agent_noise else ""))
     if not (path / "manifest.json").is_file():
-        cfg = NoiseConfig(seed=seed, camera_translation_max=noise, missed=1, false=1)
+        cfg = NoiseConfig(seed=seed, camera_translation_max=noise, agent_translation_max=agent_noise, missed=1,
+                          false=1)
         gt, priors = generate(SceneConfig(seed=seed, frames=frames, width=width, height=height), cfg)
         tmp = path.with_name(f"{path.name}.tmp{os.getpid()}")  # runs started together race for one bundle:
         write_bundle(tmp, gt, priors, cfg, overwrite=True)  # each writes its own, the first rename wins
@@ -216,7 +223,7 @@ def _synthetic_cases(args):
         for noise in [float(n) for n in args.noise.split(",")]:
             for variant in args.variants.split(","):
                 yield seed, noise, variant, synth_bundle(Path(args.work), seed, noise, args.frames, args.width,
-                                                         args.height)
+                                                         args.height, getattr(args, "agent_noise", 0.0))
 
 
 def run_synth(args) -> None:
@@ -252,10 +259,11 @@ def run_probe(args) -> None:
     if not args.set:
         raise SystemExit("probe needs at least one --set NAME=VALUE")
     cfg, tag = probe_config(args.preset, args.set)
+    a = args.agent_noise
     for seed, noise, variant, bundle in _synthetic_cases(args):
-        _run(args, f"probe_s{seed}_n{noise:g}_{variant}_{args.preset}_{tag}", bundle, cfg,
-             {"kind": "probe", "seed": seed, "noise": noise, "variant": variant, "set": args.set},
-             ablate=VARIANTS[variant])
+        _run(args, f"probe_s{seed}_n{noise:g}" + (f"_a{a:g}" if a else "") + f"_{variant}_{args.preset}_{tag}",
+             bundle, cfg, {"kind": "probe", "seed": seed, "noise": noise, "variant": variant, "set": args.set,
+                           "agent_noise": a}, ablate=VARIANTS[variant])
 
 
 def run_rescore(args) -> None:
@@ -304,6 +312,8 @@ def main(argv=None) -> int:
     p.add_argument("--height", type=int, default=192)
     p.add_argument("--data", default=str(ROOT.parent / "shared" / "data" / "kitti06_51"))
     p.add_argument("--set", action="append", default=[], help="probe: NAME=VALUE (lr.NAME for a learning rate)")
+    p.add_argument("--agent-noise", type=float, default=0.0,
+                   help="probe: also move each tracklet box centre by up to this many metres per frame")
     p.add_argument("--force", action="store_true")
     args = p.parse_args(argv)
     if args.what == "report":

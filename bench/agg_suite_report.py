@@ -148,9 +148,11 @@ def probe_table(runs: list[dict]) -> list[str]:
            "| Seed | Noise | Variant | Options | PSNR | Agent PSNR | Gaussians | Wall (s) | Unchanged PSNR / agent "
            "PSNR |", "|---|---|---|---|---|---|---|---|---|"]
     for r in sorted(probes, key=lambda r: (r["seed"], r["noise"], " ".join(r["set"]), r["variant"])):
-        m, ref = r["metrics"], plain.get((r["seed"], r["noise"], r["variant"]))
+        a = r.get("agent_noise", 0.0)
+        m, ref = r["metrics"], None if a else plain.get((r["seed"], r["noise"], r["variant"]))
         base = f"{_fmt(ref['metrics']['psnr'])} / {_fmt(ref['metrics']['psnr_agents'])}" if ref else "–"
-        out.append(f"| {r['seed']} | {r['noise']:g} m | {r['variant']} | {', '.join(r['set'])} | {_fmt(m['psnr'])} | "
+        opts = ", ".join(r["set"] + ([f"agent noise {a:g} m"] if a else []))
+        out.append(f"| {r['seed']} | {r['noise']:g} m | {r['variant']} | {opts} | {_fmt(m['psnr'])} | "
                    f"{_fmt(m['psnr_agents'])} | {m['n_gaussians']} | {r['wall_s']:.0f} | {base} |")
     return out + [""]
 
