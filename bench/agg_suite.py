@@ -217,13 +217,13 @@ def _run(args, name: str, input_path, preset, row: dict, **kwargs) -> dict | Non
     return row
 
 
-def _synthetic_cases(args):
+def _synthetic_cases(args, agent_noise: float = 0.0):
     """(seed, noise, variant, bundle path) for every case of ``--seeds`` x ``--noise`` x ``--variants``."""
     for seed in [int(s) for s in args.seeds.split(",")]:
         for noise in [float(n) for n in args.noise.split(",")]:
             for variant in args.variants.split(","):
                 yield seed, noise, variant, synth_bundle(Path(args.work), seed, noise, args.frames, args.width,
-                                                         args.height, getattr(args, "agent_noise", 0.0))
+                                                         args.height, agent_noise)
 
 
 def run_synth(args) -> None:
@@ -260,7 +260,7 @@ def run_probe(args) -> None:
         raise SystemExit("probe needs at least one --set NAME=VALUE")
     cfg, tag = probe_config(args.preset, args.set)
     a = args.agent_noise
-    for seed, noise, variant, bundle in _synthetic_cases(args):
+    for seed, noise, variant, bundle in _synthetic_cases(args, a):
         _run(args, f"probe_s{seed}_n{noise:g}" + (f"_a{a:g}" if a else "") + f"_{variant}_{args.preset}_{tag}",
              bundle, cfg, {"kind": "probe", "seed": seed, "noise": noise, "variant": variant, "set": args.set,
                            "agent_noise": a}, ablate=VARIANTS[variant])
@@ -277,7 +277,8 @@ def run_rescore(args) -> None:
                 print(path.stem, "skipped: the scene on disk is not the one this record scored", flush=True)
                 continue
             row["regions"] = region_scores(scene)
-            bundle = synth_bundle(work, row["seed"], row["noise"], args.frames, args.width, args.height)
+            bundle = synth_bundle(work, row["seed"], row["noise"], args.frames, args.width, args.height,
+                                  row.get("agent_noise", 0.0))
             row["agent_poses"] = agent_pose_scores(load_graph(scene), bundle)
             path.write_text(json.dumps(row, indent=1))
             print(path.stem, row["regions"], {k: v for k, v in (row["agent_poses"] or {}).items()
@@ -316,6 +317,8 @@ def main(argv=None) -> int:
                    help="probe: also move each tracklet box centre by up to this many metres per frame")
     p.add_argument("--force", action="store_true")
     args = p.parse_args(argv)
+    if args.agent_noise and args.what != "probe":
+        p.error("--agent-noise is for probe only (the suite's records keep the tracklet boxes exact)")
     if args.what == "report":
         from bench.agg_suite_report import write_report
 

@@ -12,6 +12,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from agg.eval.trajectory import rotation_angle_deg as _angle_deg
+
 if TYPE_CHECKING:
     from agg.priors.poses import PoseConfig
 
@@ -27,11 +29,6 @@ def _config(config: "PoseConfig | None") -> "PoseConfig":
 
 
 # ----------------------------------------------------------------------------------------------- rotations
-def _angle_deg(r: np.ndarray) -> np.ndarray:
-    """Rotation angle (deg) of [..., 3, 3]."""
-    return np.degrees(np.arccos(np.clip((np.trace(r, axis1=-2, axis2=-1) - 1) / 2, -1, 1)))
-
-
 def _slerp(ra: np.ndarray, rb: np.ndarray, f: float) -> np.ndarray:
     from scipy.spatial.transform import Rotation
 
