@@ -3,8 +3,8 @@
     python bench/agg_suite.py synth [--seeds 0,1,2] [--noise 0,0.25,0.5,1.0] [--variants agg,baseline,...]
     python bench/agg_suite.py kitti [--data ../shared/data/kitti06_51] [--preset fast]
     python bench/agg_suite.py presets [--presets fast,balanced] [--seed 0]
-    python bench/agg_suite.py probe --set iterations=4000 [--set lr.agent_boost=1] [--seeds 0] [--noise 1.0]
-                                    [--agent-noise 1.0]
+    python bench/agg_suite.py probe --set iterations=4000 [--set lr.agent_boost=1] [--set tracking=none] [--seeds 0]
+                                    [--noise 1.0] [--agent-noise 0.5]  # no --set needed with --agent-noise
     python bench/agg_suite.py rescore           # region / agent-pose scores of runs whose scenes are on disk
     python bench/agg_suite.py report            # tables -> docs/BENCHMARKS.md section, plots -> docs/*.png
 
@@ -18,7 +18,8 @@ Variants: ``agg`` (everything on), ``baseline`` (``--ablate all``: the fixed-top
 ``lr.NAME`` for a learning-rate field; milestones scale with ``iterations``), to ask what a component's worth
 depends on. Its records are kind "probe" and stay out of the suite's tables. ``--agent-noise`` adds noise to the
 tracklet box centres too (the suite's priors keep them exact; only the cameras are noisy, as in the paper's stress
-test), so a probe can ask what the agent rates are worth when the agent priors are wrong.
+test), so a probe can ask what the agent rates are worth when the agent priors are wrong; with ``--agent-noise``
+no ``--set`` is needed (the preset as it is, on noisy boxes).
 """
 
 from __future__ import annotations
@@ -249,19 +250,21 @@ def probe_config(preset: str, sets: list[str]):
         kinds = {f.name: type(getattr(target, f.name)) for f in fields(target)}
         if field not in kinds or not value:
             raise SystemExit(f"--set {item!r}: no option {name!r} (NAME=VALUE)")
-        new = replace(target, **{field: kinds[field](value)})
+        off = value.lower() == "none" and getattr(target, field) is not None and kinds[field] not in (int, float, str)
+        new = replace(target, **{field: None if off else kinds[field](value)})  # tracking=none: a part off
         cfg = replace(cfg, lr=new) if name.startswith("lr.") else new
         tags.append(f"{field}{value}")
     return cfg, "_".join(tags)
 
 
 def run_probe(args) -> None:
-    if not args.set:
-        raise SystemExit("probe needs at least one --set NAME=VALUE")
-    cfg, tag = probe_config(args.preset, args.set)
     a = args.agent_noise
+    if not args.set and not a:
+        raise SystemExit("probe needs at least one --set NAME=VALUE, or --agent-noise")
+    cfg, tag = probe_config(args.preset, args.set)
     for seed, noise, variant, bundle in _synthetic_cases(args, a):
-        _run(args, f"probe_s{seed}_n{noise:g}" + (f"_a{a:g}" if a else "") + f"_{variant}_{args.preset}_{tag}",
+        _run(args, f"probe_s{seed}_n{noise:g}" + (f"_a{a:g}" if a else "") + f"_{variant}_{args.preset}"
+             + (f"_{tag}" if tag else ""),
              bundle, cfg, {"kind": "probe", "seed": seed, "noise": noise, "variant": variant, "set": args.set,
                            "agent_noise": a}, ablate=VARIANTS[variant])
 

@@ -93,6 +93,12 @@ def test_tick_tock_raises_agent_pose_translations_and_leaves_their_rotations_at_
     on, off = rates[False], rates[True]
     assert on["rigid#tau"] == pytest.approx(10 * off["rigid#tau"]) and on["rigid#omega"] == off["rigid#omega"]
     assert on["camera#omega"] == off["camera#omega"]
+    # a probe can keep the raised rates with Tick-Tock ablated, to measure the freezing alone
+    tr = _trainer(bundle, ablate=frozenset({"tick-tock"}))
+    tr.cfg = replace(tr.cfg, lr=replace(tr.cfg.lr, agent_boost_ablated=tr.cfg.lr.agent_boost))
+    kept = {grp["name"]: grp["lr"] for grps in tr.param_groups().values() for grp in grps}
+    assert kept["rigid#tau"] == pytest.approx(on["rigid#tau"])
+    assert kept["rigid#means"] == pytest.approx(on["rigid#means"])
 
 
 def test_the_densifier_reads_the_photometric_gradient_and_the_parameters_the_whole_loss(bundle):

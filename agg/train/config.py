@@ -39,6 +39,7 @@ class LearningRates:
     agent_rotation: float = 1e-5  # radians, never boosted: Sec. 4.2 raises pose translations only (OmniRe: 1e-5)
     deform: float = 1e-3
     agent_boost: float = 10.0
+    agent_boost_ablated: float = 1.0  # the boost with Tick-Tock ablated: OmniRe's rates (a probe can keep x10)
     joint_decay: float = 0.1  # every lr x this in the joint phase
 
 

@@ -112,7 +112,7 @@ class Trainer:
 
     def param_groups(self) -> dict[str, list[dict]]:
         g, lr, cfg = self.graph, self.cfg.lr, self.cfg
-        boost = lr.agent_boost if cfg.tick_tock else 1.0
+        boost = lr.agent_boost if cfg.tick_tock else lr.agent_boost_ablated
         pose_scale = self._lr_scale()
 
         def gaussian_lrs(means_lr: float) -> dict[str, float]:
