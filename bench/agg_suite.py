@@ -214,6 +214,21 @@ def region_scores(scene_dir: Path) -> dict | None:
             "agent_pixel_share": n_ag / (n * len(rows)), "agent_error_share": sse_ag / sse}
 
 
+def machine_info() -> dict:
+    """What a run's floating-point results depend on besides the code: the CPU (torch and OpenCV pick their SIMD
+    kernels from its flags, and the same run on an AVX-512 host and on another gives different numbers) and the
+    numeric libraries' versions."""
+    import cv2
+    import torch
+
+    info = Path("/proc/cpuinfo")
+    lines = info.read_text().splitlines() if info.is_file() else []
+    flags = next((ln for ln in lines if ln.startswith("flags")), "")
+    model = next((ln.split(":", 1)[1].strip() for ln in lines if ln.startswith("model name")), platform.processor())
+    return {"cpu": model, "avx512": " avx512f" in flags, "torch": torch.__version__, "opencv": cv2.__version__,
+            "numpy": np.__version__, "torch_threads": torch.get_num_threads()}
+
+
 def _run(args, name: str, input_path, preset, row: dict, **kwargs) -> dict | None:
     """Reconstruct ``input_path`` (at ``preset``, a name or a TrainConfig) into work/scenes/NAME and record
     work/runs/NAME.json (``row`` plus wall time, metrics and summary); None when that record exists and ``--force``
@@ -227,7 +242,8 @@ def _run(args, name: str, input_path, preset, row: dict, **kwargs) -> dict | Non
     t0 = time.perf_counter()
     summary = reconstruct(input_path, work / "scenes" / name, preset, resume=False, **kwargs)
     row = {**row, "preset": preset if isinstance(preset, str) else preset.name,
-           "wall_s": round(time.perf_counter() - t0, 1), "metrics": summary.get("metrics"), "summary": summary}
+           "wall_s": round(time.perf_counter() - t0, 1), "machine": machine_info(), "metrics": summary.get("metrics"),
+           "summary": summary}
     if row["kind"] in SYNTHETIC_KINDS:  # score the missed and false agents, the cameras and the regions
         graph = load_graph(work / "scenes" / name)
         row["topology"] = topology_scores(graph, input_path, refined_alignment(graph, work / "scenes" / name,
