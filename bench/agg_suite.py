@@ -25,6 +25,7 @@ no ``--set`` is needed (the preset as it is, on noisy boxes).
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import os
 import platform
@@ -215,9 +216,8 @@ def region_scores(scene_dir: Path) -> dict | None:
 
 
 def machine_info() -> dict:
-    """What a run's floating-point results depend on besides the code: the CPU (torch and OpenCV pick their SIMD
-    kernels from its flags, and the same run on an AVX-512 host and on another gives different numbers) and the
-    numeric libraries' versions."""
+    """What a run's floating-point results may depend on besides the code and the bundle: the CPU (torch and OpenCV
+    pick SIMD kernels from its flags) and the numeric libraries' versions."""
     import cv2
     import torch
 
@@ -227,6 +227,19 @@ def machine_info() -> dict:
     model = next((ln.split(":", 1)[1].strip() for ln in lines if ln.startswith("model name")), platform.processor())
     return {"cpu": model, "avx512": " avx512f" in flags, "torch": torch.__version__, "opencv": cv2.__version__,
             "numpy": np.__version__, "torch_threads": torch.get_num_threads()}
+
+
+def bundle_digest(path: Path) -> str | None:
+    """SHA-256 (16 hex digits) over a bundle folder's files, names and contents: bundles are cached in the work
+    folder and not tracked, so a record says which one it trained on (runs compared side by side must share it)."""
+    path = Path(path)
+    if not path.is_dir():
+        return None
+    h = hashlib.sha256()
+    for f in sorted(p for p in path.rglob("*") if p.is_file()):
+        h.update(str(f.relative_to(path)).encode())
+        h.update(f.read_bytes())
+    return h.hexdigest()[:16]
 
 
 def _run(args, name: str, input_path, preset, row: dict, **kwargs) -> dict | None:
@@ -239,11 +252,12 @@ def _run(args, name: str, input_path, preset, row: dict, **kwargs) -> dict | Non
     out = work / "runs" / f"{name}.json"
     if out.is_file() and not args.force:
         return None
+    digest = bundle_digest(input_path)  # taken before training: which input this record trained on
     t0 = time.perf_counter()
     summary = reconstruct(input_path, work / "scenes" / name, preset, resume=False, **kwargs)
     row = {**row, "preset": preset if isinstance(preset, str) else preset.name,
-           "wall_s": round(time.perf_counter() - t0, 1), "machine": machine_info(), "metrics": summary.get("metrics"),
-           "summary": summary}
+           "wall_s": round(time.perf_counter() - t0, 1), "machine": machine_info(), "bundle": digest,
+           "metrics": summary.get("metrics"), "summary": summary}
     if row["kind"] in SYNTHETIC_KINDS:  # score the missed and false agents, the cameras and the regions
         graph = load_graph(work / "scenes" / name)
         row["topology"] = topology_scores(graph, input_path, refined_alignment(graph, work / "scenes" / name,
