@@ -113,8 +113,7 @@ def topology_scores(graph, bundle_path: Path, gt_from_est=None) -> dict:
                          "within_1m": frac, "within_1m_of_visible": float((d <= 1.0).sum() / vis.sum()),
                          "median_m": float(np.median(d))}
                 if gt_from_est is not None:
-                    ca = gt_from_est.scale * c @ gt_from_est.rotation.T + gt_from_est.translation  # [T, 3]
-                    da = np.linalg.norm(ca - gt_c, axis=1)[valid]  # [F]
+                    da = np.linalg.norm(gt_from_est.apply_to_points(c) - gt_c, axis=1)[valid]  # [F]
                     score |= {"within_1m_aligned": float((da <= 1.0).sum() / vis.sum()),
                               "median_aligned_m": float(np.median(da))}
                 if best is None or score["within_1m_of_visible"] > best["within_1m_of_visible"]:

@@ -163,21 +163,11 @@ def probe_table(runs: list[dict]) -> list[str]:
 
 
 def _default_options(r: dict) -> bool:
-    """Whether a probe's ``--set`` options all equal its preset's own values (the preset as it is)."""
+    """Whether a probe's ``--set`` options leave its preset as it is (they all equal the preset's own values)."""
     from agg.train.config import get_preset
+    from agg_suite import probe_config  # bench/ is on the path: the report runs as ``agg_suite.py report``
 
-    cfg = get_preset(r["preset"])
-    for item in r["set"]:
-        name, _, value = item.partition("=")
-        target = cfg.lr if name.startswith("lr.") else cfg
-        current = getattr(target, name.removeprefix("lr."))
-        if value.lower() == "none":
-            differs = current is not None  # a part switched off (tracking=none)
-        else:
-            differs = current is None or type(current)(value) != current
-        if differs:
-            return False
-    return True
+    return probe_config(r["preset"], r["set"])[0] == get_preset(r["preset"])
 
 
 def noisy_box_table(runs: list[dict]) -> list[str]:

@@ -37,11 +37,15 @@ class Sim3:
     rotation: np.ndarray  # [3, 3]
     translation: np.ndarray  # [3]
 
+    def apply_to_points(self, points: np.ndarray) -> np.ndarray:
+        """Map points [N, 3] into the target world."""
+        return self.scale * np.asarray(points, float) @ self.rotation.T + self.translation
+
     def apply_to_poses(self, world_from_camera: np.ndarray) -> np.ndarray:
         """Map camera-to-world poses [N, 4, 4] into the target world; rotations stay orthonormal."""
         out = np.array(world_from_camera, float, copy=True)
         out[:, :3, :3] = self.rotation @ out[:, :3, :3]
-        out[:, :3, 3] = self.scale * out[:, :3, 3] @ self.rotation.T + self.translation
+        out[:, :3, 3] = self.apply_to_points(out[:, :3, 3])
         return out
 
 
