@@ -139,8 +139,17 @@ def synth_tables(runs: list[dict]) -> list[str]:
             out.append(f"| {r['noise']:g} | {r['seed']} | {r['variant']} | {len(a['per_agent'])} | "
                        f"{_fmt(a['translation_m'], 3)} | {_fmt(a['rotation_deg'], 1)} |")
     wall = [r["wall_s"] for r in synth]
-    out += ["", f"Wall time per run: {min(wall):.0f}–{max(wall):.0f} s."]
+    out += ["", f"Wall time per run: {min(wall):.0f}–{max(wall):.0f} s. {_machines(synth)}"]
     return out
+
+
+def _machines(runs: list[dict]) -> str:
+    """Which CPUs the runs ran on (records carry it from the thirteenth session on): the same run on two CPUs
+    need not give the same numbers, so a Δ between runs from different machines holds that difference too."""
+    count: dict[str, int] = defaultdict(int)
+    for r in runs:
+        count[(r.get("machine") or {}).get("cpu", "not recorded")] += 1
+    return "Machines: " + ", ".join(f"{cpu} ({n} runs)" for cpu, n in sorted(count.items())) + "."
 
 
 def probe_table(runs: list[dict]) -> list[str]:
