@@ -38,7 +38,7 @@ class Sim3:
     translation: np.ndarray  # [3]
 
     def apply_to_points(self, points: np.ndarray) -> np.ndarray:
-        """Map points [N, 3] into the target world."""
+        """Map points [..., 3] into the target world (float64)."""
         return self.scale * np.asarray(points, float) @ self.rotation.T + self.translation
 
     def apply_to_poses(self, world_from_camera: np.ndarray) -> np.ndarray:

@@ -282,7 +282,7 @@ def _points_into_given_frame(res, given_world_from_camera: np.ndarray):
 
     sim = align_sim3(res.world_from_camera, given_world_from_camera)
     pts = res.points
-    return replace(pts, xyz=sim.scale * pts.xyz @ sim.rotation.T + sim.translation, obs_depth=sim.scale * pts.obs_depth)
+    return replace(pts, xyz=sim.apply_to_points(pts.xyz), obs_depth=sim.scale * pts.obs_depth)
 
 
 def score_against_gt(bundle: SceneBundle) -> dict:
@@ -344,7 +344,7 @@ def _score_tracklets(bundle: SceneBundle, gt: SceneBundle, max_dist_m: float = 2
     sim = align_sim3(bundle.world_from_camera, gt.world_from_camera)
     pred_t = bundle.tracklets
     pred = np.where(pred_t.valid[..., None], pred_t.boxes[..., :3], np.nan)  # [K, T, 3]
-    pred = sim.scale * pred @ sim.rotation.T + sim.translation
+    pred = sim.apply_to_points(pred)  # [K, T, 3]
     gt_t = gt.tracklets
     valid = np.asarray(gt_t.valid)  # [G, T]
     keep = np.ones(len(gt_t.classes), bool)
