@@ -205,7 +205,7 @@ def noisy_box_table(runs: list[dict]) -> list[str]:
             cols, errs = [], [ag.get("agent_poses", {}).get("translation_m")]
             for v in ("baseline", "no-tick-tock"):
                 r = cell.get((s, v))
-                if r is None or None not in (r.get("bundle"), ag.get("bundle")) and r["bundle"] != ag["bundle"]:
+                if r is None or (None not in (r.get("bundle"), ag.get("bundle")) and r["bundle"] != ag["bundle"]):
                     cols += ["–" if r is None else "another bundle", "–"]  # runs on different inputs: no Δ
                     errs.append(None)
                     continue
