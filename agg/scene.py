@@ -245,6 +245,13 @@ class Scene:
         with torch.no_grad():
             return self.graph.camera.world_from_camera().cpu().numpy().astype(np.float64)
 
+    @property
+    def metres_per_unit(self) -> float | None:
+        """Metres per scene unit (``scene.json`` ``metric_scale``: exact for metric priors, else an estimate from
+        the camera height, agg/priors/metric_scale.py); None for a scene trained before it was recorded."""
+        value = (self.meta.get("metric_scale") or {}).get("metres_per_unit")
+        return float(value) if value is not None else None
+
     def frame_at(self, timestamp_us: int) -> float:
         """Continuous frame index of a timestamp (integer at frame timestamps); ``OutOfRange`` outside the clip."""
         ts, t = self.timestamps_us, int(timestamp_us)

@@ -11,6 +11,7 @@ import torch
 
 from agg.graph import SceneGraph
 from agg.io.bundle import SceneBundle
+from agg.priors.metric_scale import estimate_metric_scale
 from agg.nodes.init import InitConfig
 from agg.synth.corrupt import NoiseConfig
 from agg.synth.scene import SceneConfig
@@ -34,8 +35,9 @@ def make_graph(bundle: SceneBundle) -> SceneGraph:
 
 def write_scene_dir(root: Path, scene_id: str, bundle: SceneBundle, graph: SceneGraph | None,
                     file: str = "model.pt", iteration: int = 0, train_frames: list[int] | None = None,
-                    status: str = "done") -> Path:
-    """``root/scene_id`` with scene.json and, unless ``graph`` is None, the graph saved as ``file``."""
+                    status: str = "done", metric_scale: dict | None = None) -> Path:
+    """``root/scene_id`` with scene.json and, unless ``graph`` is None, the graph saved as ``file``.
+    ``metric_scale``: scene.json's metres per unit (default: the bundle's estimate, as ``reconstruct`` writes it)."""
     d = Path(root) / scene_id
     d.mkdir(parents=True, exist_ok=True)
     t = bundle.num_frames
@@ -43,7 +45,8 @@ def write_scene_dir(root: Path, scene_id: str, bundle: SceneBundle, graph: Scene
     meta = {"version": 1, "scene_id": scene_id, "bundle": str(bundle.path),
             "num_frames": t, "timestamps_us": [int(v) for v in bundle.timestamps_us], "width": bundle.width,
             "height": bundle.height, "K": np.asarray(bundle.intrinsics).tolist(), "train_frames": train,
-            "test_frames": [i for i in range(t) if i not in train], "preset": "test", "status": status}
+            "test_frames": [i for i in range(t) if i not in train], "preset": "test", "status": status,
+            "metric_scale": metric_scale or estimate_metric_scale(bundle).as_dict()}
     (d / "scene.json").write_text(json.dumps(meta))
     if graph is not None:
         torch.save({"graph": graph.state(), "iteration": iteration}, d / file)

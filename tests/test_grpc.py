@@ -38,7 +38,8 @@ def world(tmp_path_factory, redis_proc):  # noqa: F811
     scenes = root / "scenes"
     for sid in ("sA", "sB"):
         write_scene_dir(scenes, sid, bundle, graph, iteration=11)
-    write_scene_dir(scenes, "sEmpty", bundle, None, status="training")
+    write_scene_dir(scenes, "sEmpty", bundle, None, status="training",
+                    metric_scale={"metres_per_unit": 2.5, "source": "camera_height"})
     write_scene_dir(scenes, "sTrain", bundle, graph, file="checkpoint.pt", iteration=1, status="training")
     store = JobStore(redis_proc.client(), data_dir=root)
     server = build_server(0, scenes, authenticate=KEYS.get, scene_tenant=OWNERS.get, jobs=store, host="127.0.0.1",
@@ -256,6 +257,7 @@ def test_scene_service_lists_describes_and_graphs(world):
     assert np.allclose(cam.poses[0].pose.matrix.values, np.eye(4).reshape(-1), atol=1e-5)  # world = camera 0
     empty = stub.GetScene(scene_pb2.GetSceneRequest(scene_id="sEmpty"), metadata=A)
     assert not empty.ready and not empty.cameras[0].poses
+    assert info.scale == 1.0 and empty.scale == 2.5  # scene.json's metric_scale: metres per scene unit
     g = stub.GetSceneGraph(scene_pb2.GetSceneGraphRequest(scene_id="sA", include_json=True), metadata=A)
     ids = [int(t) for t in graph.slot_track_ids()]
     assert [n.id for n in g.nodes][:2] == ["camera", "background"]

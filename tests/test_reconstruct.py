@@ -45,6 +45,8 @@ def test_reconstruct_writes_a_complete_scene(scene, capsys):
         assert (scene / name).is_file(), name
     meta = json.loads((scene / "scene.json").read_text())
     assert meta["status"] == "done" and meta["test_frames"] == [4, 9]
+    assert meta["metric_scale"]["source"] == "metric" and meta["metric_scale"]["metres_per_unit"] == 1.0
+    assert json.loads((scene / "graph.json").read_text())["meta"]["metric_scale"] == meta["metric_scale"]
     assert set(meta["summary"]["nodes"]) >= {"camera", "background", "rigid"}
     log = meta["summary"]["topology"]  # one row per evolution of the tiny preset
     assert log and all({"iteration", "candidates", "clusters", "tracks", "track_runs", "spawned", "pruned"} <= set(r)
@@ -73,6 +75,26 @@ def test_render_png_mp4_and_a_shifted_camera(scene, tmp_path):
     with av.open(str(tmp_path / "v.mp4")) as c:
         assert sum(1 for _ in c.decode(video=0)) == 6
     assert main(["render", str(scene), "--frame", "99", "-o", str(tmp_path / "x.png")]) == 2
+    assert main(["render", str(scene), "--frame", "1", "--shift", "1,nan,0", "-o", str(tmp_path / "x.png")]) == 2
+
+
+def test_a_shift_is_in_metres_whatever_the_scene_units(scene, tmp_path):
+    """--shift is metres: in a scene whose unit is 2 m, '3,0,0' moves the camera as far as '1.5,0,0' does in a
+    scene of metres."""
+    import shutil
+
+    import cv2
+
+    twice = tmp_path / "twice"
+    shutil.copytree(scene, twice)
+    meta = json.loads((twice / "scene.json").read_text())
+    meta["metric_scale"]["metres_per_unit"] = 2.0
+    (twice / "scene.json").write_text(json.dumps(meta))
+    assert main(["render", str(scene), "--frame", "2", "--shift", "1.5,0,0", "-o", str(tmp_path / "m.png")]) == 0
+    assert main(["render", str(twice), "--frame", "2", "--shift", "3,0,0", "-o", str(tmp_path / "u.png")]) == 0
+    assert main(["render", str(twice), "--frame", "2", "--shift", "1.5,0,0", "-o", str(tmp_path / "h.png")]) == 0
+    m, u, h = (cv2.imread(str(tmp_path / f"{n}.png")) for n in "muh")
+    assert np.array_equal(m, u) and not np.array_equal(m, h)
     assert main(["render", str(scene), "--time", "50", "-o", str(tmp_path / "x.png")]) == 2
 
 

@@ -11,6 +11,7 @@ from agg.graph import SceneGraph
 from agg.io.bundle import SceneBundle
 from agg.nodes.gaussians import GaussianParams, append_rows
 from agg.nodes.init import InitConfig
+from agg.priors.metric_scale import estimate_metric_scale
 from agg.synth.corrupt import NoiseConfig
 from agg.synth.scene import SceneConfig
 from agg.synth.suite import generate, load_gt_extras, write_bundle
@@ -98,6 +99,39 @@ def test_a_missed_moving_car_is_spawned_on_its_trajectory(missed):
         before = graph.render(frame).color
         moved = topo.reanchor(graph)
         assert list(moved) == [str(new_id)] and torch.allclose(graph.render(frame).color, before, atol=1e-4)
+
+
+@pytest.mark.parametrize("reading", ["road-plane estimate", "scene units as metres"])
+def test_a_monocular_scale_spawns_the_missed_car_where_metres_are_estimated(tmp_path, reading):
+    """The missed-car clip with every length divided by its path length f and marked not metric (what a video's
+    priors are: median sparse depth 1). Read through the road-plane estimate of metres per unit, the car spawns
+    as in metres; reading scene units as metres (the bundle's bookkeeping scale 1, the old behaviour) puts the
+    thresholds f times too wide and the spawned box about 3 m off."""
+    path = tmp_path / "mono"
+    bundle, _ = _clip(path, SceneConfig(seed=0, frames=8, width=160, height=96, pedestrians=0), NoiseConfig(missed=1),
+                      budget=6000)
+    f = bundle.normalise_scale("path_length")
+    bundle.set_scale(1.0, metric=False)
+    bundle = SceneBundle.load(path)
+    torch.manual_seed(0)
+    graph = SceneGraph.from_bundle(bundle, InitConfig(background_budget=6000, seed=0))
+    est = estimate_metric_scale(bundle)
+    assert est.source == "camera_height" and est.metres_per_unit == pytest.approx(f, rel=0.1)
+    mpu = est.metres_per_unit if reading == "road-plane estimate" else bundle.scale
+    topo = TopologyEvolution(TopologyConfig(), bundle.semantics, bundle.intrinsics, bundle.width, bundle.height, mpu,
+                             depth=bundle.dense_depth, reserved_ids=bundle.tracklets.ids)
+    opt = _fit_background(bundle, graph, topo, steps=80)
+    extras = load_gt_extras(path)
+    gt_poses = extras["world_from_agent"][extras["index"]["missed_ids"][0] - 1]  # [T, 4, 4], metres
+    report = topo.evolve(graph, opt, iteration=80)
+    assert len(report["spawned"]) == 1
+    j = graph.rigid.track_ids.tolist().index(report["spawned"][0])
+    dist = np.linalg.norm(graph.rigid.prior[:, j, :3, 3].numpy() * f - gt_poses[:, :3, 3], axis=1)  # metres
+    print(reading, "spawned-vs-GT centre distance (m):", np.round(dist, 2))
+    if reading == "road-plane estimate":
+        assert (dist < 1.0).mean() >= 0.8 and np.median(dist) < 1.0, dist
+    else:
+        assert np.median(dist) > 2.0, dist
 
 
 def test_a_dead_false_agent_is_pruned(tmp_path):

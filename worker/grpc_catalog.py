@@ -19,6 +19,13 @@ NODE_KINDS = {"camera": scene_pb2.NODE_KIND_CAMERA, "background": scene_pb2.NODE
               "non-rigid": scene_pb2.NODE_KIND_NON_RIGID_AGENT}
 
 
+def _metres_per_unit(meta: dict) -> float:
+    """SceneInfo.scale: scene.json's ``metric_scale`` (exact for metric priors, else the camera-height estimate of
+    agg/priors/metric_scale.py), 1 when the scene has none."""
+    value = (meta.get("metric_scale") or {}).get("metres_per_unit")
+    return float(value) if value else 1.0
+
+
 def _time_range(ts) -> common_pb2.TimeRange:
     ts = [int(t) for t in ts]
     return common_pb2.TimeRange(start_us=ts[0], end_us=ts[-1]) if ts else common_pb2.TimeRange()
@@ -78,7 +85,7 @@ class SceneServicer(scene_pb2_grpc.SceneServiceServicer):
                                    time_range=_time_range(ts), timestamps_us=ts,
                                    train_frames=[int(i) for i in meta.get("train_frames") or []],
                                    test_frames=[int(i) for i in meta.get("test_frames") or []],
-                                   preset=str(meta.get("preset", "")), scale=float(meta.get("scale", 1.0) or 1.0))
+                                   preset=str(meta.get("preset", "")), scale=_metres_per_unit(meta))
         try:
             scene = self.cache.get(folder)
         except SceneNotReady:

@@ -31,7 +31,8 @@ def run(args: argparse.Namespace) -> int:
             raise ValueError(f"frame {args.frame} is out of range [0, {graph.num_frames})")
         ply = Path(args.ply or Path(args.scene) / "scene.ply")
         out = Path(args.graph or Path(args.scene) / "graph.json")
-        doc = export_scene(graph, ply, out, meta["timestamps_us"], meta={"preset": meta.get("preset")},
+        doc = export_scene(graph, ply, out, meta["timestamps_us"], meta={"preset": meta.get("preset"),
+                                                                           "metric_scale": meta.get("metric_scale")},
                            frame=args.frame)
     except (ValueError, OSError, SceneNotReady, SceneUnreadable) as exc:
         print(f"agg export: error: {exc}", file=sys.stderr)

@@ -23,8 +23,9 @@ def add_parser(subparsers) -> None:
     src.add_argument("--pose", metavar="FILE",
                      help="text file with a 4x4 (or 3x4) world_from_camera matrix (OpenCV axes), rendered at --at")
     p.add_argument("--at", type=float, default=0.0, metavar="S", help="time (s) of the agents for --pose")
-    p.add_argument("--shift", metavar="X,Y,Z", help="move the camera by this offset in its own frame (metres "
-                                                   "of the scene), e.g. '-3.5,0,0' for one lane to the left")
+    p.add_argument("--shift", metavar="X,Y,Z", help="move the camera by this offset in its own frame, in metres "
+                                                   "(scene units through the scene's metric_scale, an estimate for a "
+                                                   "video), e.g. '-3.5,0,0' for one lane to the left")
     p.add_argument("--what", default="rgb", choices=["rgb", "depth", "alpha", "instances"])
     p.add_argument("--fps", type=float, default=10.0, help="MP4 frame rate")
     p.add_argument("-o", "--output", required=True, metavar="OUT.png|OUT.mp4")
@@ -87,8 +88,13 @@ def run(args: argparse.Namespace) -> int:
         shift = None
         if args.shift:
             shift = np.array([float(v) for v in args.shift.split(",")])
-            if shift.shape != (3,):
-                raise ValueError("--shift needs three numbers X,Y,Z")
+            if shift.shape != (3,) or not np.isfinite(shift).all():
+                raise ValueError("--shift needs three finite numbers X,Y,Z")
+            if scene.metres_per_unit is None:
+                print("agg render: scene.json has no metric_scale (trained before it was recorded): --shift is read "
+                      "in scene units", file=sys.stderr)
+            else:
+                shift = shift / scene.metres_per_unit  # metres -> scene units
         cams = torch.as_tensor(scene.world_from_camera(), dtype=torch.float32)  # [T, 4, 4]
         images = []
         for t_us, cam in jobs:

@@ -2,7 +2,8 @@
 
 Scene directory (docs/SCENE.md):
 
-- ``scene.json``: metadata (frames, timestamps, training size and intrinsics, split, preset, status, timings);
+- ``scene.json``: metadata (frames, timestamps, training size and intrinsics, split, preset, status, timings,
+  ``metric_scale``: metres per scene unit, exact or estimated, ``agg.priors.metric_scale``);
 - ``bundle/``: the scene bundle, when the input was not a bundle with every prior (ingested, then ``run_priors``);
   ``bundle_gt_poses/`` with ``gt_poses=True``;
 - ``checkpoint.pt``: the latest resumable training state (written every ``checkpoint_every`` iterations);
@@ -16,6 +17,7 @@ import argparse
 import json
 import shutil
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Callable
 
@@ -24,6 +26,7 @@ import torch
 
 from agg.graph import SceneGraph
 from agg.io.bundle import SceneBundle
+from agg.priors.metric_scale import MetricScale, estimate_metric_scale
 from agg.train.config import TrainConfig, get_preset
 from agg.train.data import load_train_data
 from agg.train.trainer import Cancelled, Trainer, seed_everything
@@ -89,6 +92,7 @@ def with_gt_poses(bundle: SceneBundle, out: Path) -> SceneBundle:
     sim = align_sim3(bundle.world_from_camera, gt.world_from_camera)
     s, r = sim.scale, sim.rotation
     b.write_poses(gt.world_from_camera, source="gt")
+    b.set_scale(gt.scale, metric=gt.metric)  # every length below is moved into the ground truth's units
     if b.has("depth_dense"):
         b.write_dense_depth(np.asarray(b.dense_depth, np.float32) * s, b.dense_depth_confidence, dtype="float32",
                             source="sim3-to-gt")
@@ -105,8 +109,13 @@ def with_gt_poses(bundle: SceneBundle, out: Path) -> SceneBundle:
     return b
 
 
-def _graph_for(bundle: SceneBundle, cfg: TrainConfig) -> SceneGraph:
-    return SceneGraph.from_bundle(bundle, cfg.init)
+def _graph_for(bundle: SceneBundle, cfg: TrainConfig, metric: MetricScale) -> SceneGraph:
+    """The graph of the bundle's priors; the deformation network's position scale (metres) in scene units."""
+    from agg.nodes.nonrigid import DeformConfig
+
+    deform = DeformConfig()
+    return SceneGraph.from_bundle(bundle, cfg.init,
+                                  deform=replace(deform, pos_scale=deform.pos_scale * metric.units_per_metre))
 
 
 def reconstruct(input_path: str | Path, scene_dir: str | Path, preset: str | TrainConfig = "fast", *,
@@ -133,18 +142,20 @@ def reconstruct(input_path: str | Path, scene_dir: str | Path, preset: str | Tra
     t_priors = time.perf_counter() - t0
     seed_everything(cfg.seed)
     data = load_train_data(bundle, cfg.max_width, cfg.attention_norm, cfg.eval_every)
+    metric = estimate_metric_scale(bundle)  # metres per scene unit (agg/priors/metric_scale.py)
     ckpt = scene_dir / "checkpoint.pt"
     meta = {"version": 1, "scene_id": scene_dir.name, "bundle": str(Path(bundle.path).resolve()),
             "num_frames": bundle.num_frames, "timestamps_us": [int(t) for t in bundle.timestamps_us],
             "width": data.width, "height": data.height, "K": data.K.tolist(), "train_frames": data.train_frames,
             "test_frames": data.test_frames, "preset": cfg.name, "ablate": sorted(cfg.ablate),
-            "gt_poses": bool(gt_poses), "config": cfg.as_dict(), "status": "training"}
+            "gt_poses": bool(gt_poses), "config": cfg.as_dict(), "metric_scale": metric.as_dict(),
+            "status": "training"}
     (scene_dir / "scene.json").write_text(json.dumps(meta, indent=1))
-    kwargs = {"progress": progress, "should_stop": should_stop, "checkpoint_ok": checkpoint_ok}
+    kwargs = {"progress": progress, "should_stop": should_stop, "checkpoint_ok": checkpoint_ok, "metric": metric}
     if resume and ckpt.is_file():
         trainer = Trainer.resume(ckpt, data, cfg, bundle, **kwargs)
     else:
-        trainer = Trainer(_graph_for(bundle, cfg), data, cfg, bundle, **kwargs)
+        trainer = Trainer(_graph_for(bundle, cfg, metric), data, cfg, bundle, **kwargs)
     initial = {"n_gaussians": trainer.graph.num_gaussians(), "n_agents": trainer.graph.num_agents,
                "nodes": _node_names(trainer.graph)}
     t1 = time.perf_counter()
@@ -163,7 +174,7 @@ def reconstruct(input_path: str | Path, scene_dir: str | Path, preset: str | Tra
     from agg.export import export_scene
 
     export_scene(graph, scene_dir / "scene.ply", scene_dir / "graph.json", bundle.timestamps_us,
-                 meta={"preset": meta["preset"]})
+                 meta={"preset": meta["preset"], "metric_scale": meta["metric_scale"]})
     if evaluate:
         if progress is not None:
             progress({"stage": "eval", "phase": "eval"})

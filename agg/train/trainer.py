@@ -22,6 +22,7 @@ import torch
 from agg.graph import SceneGraph
 from agg.nodes.gaussians import keep_rows
 from agg.io.bundle import SceneBundle
+from agg.priors.metric_scale import MetricScale, estimate_metric_scale
 from agg.train.camera_tracking import track_cameras
 from agg.train.config import TrainConfig
 from agg.train.data import TrainData
@@ -51,9 +52,10 @@ def scene_extent(graph: SceneGraph) -> float:
 class Trainer:
     def __init__(self, graph: SceneGraph, data: TrainData, config: TrainConfig, bundle: SceneBundle | None = None,
                  progress: Callable[[dict], None] | None = None, should_stop: Callable[[], bool] | None = None,
-                 checkpoint_ok: Callable[[], bool] | None = None):
+                 checkpoint_ok: Callable[[], bool] | None = None, metric: MetricScale | None = None):
         """``checkpoint_ok()`` is asked before every checkpoint write; False skips it (a worker that lost its job's
-        lease must not overwrite the checkpoint of the attempt that now owns the job)."""
+        lease must not overwrite the checkpoint of the attempt that now owns the job). ``metric``: metres per scene
+        unit (default: ``estimate_metric_scale(bundle)``; 1 without a bundle)."""
         self.graph, self.data, self.cfg, self.bundle = graph, data, config, bundle
         self.progress, self.should_stop, self.checkpoint_ok = progress, should_stop, checkpoint_ok
         graph.K = data.K.clone()
@@ -62,6 +64,10 @@ class Trainer:
         self.schedule = TickTockSchedule(cfg.milestone(cfg.warmup), max(1, cfg.milestone(cfg.alternate)),
                                          cfg.milestone(cfg.joint), cfg.tick_tock, cfg.lr.joint_decay)
         self.extent = scene_extent(graph)
+        # metres per scene unit: the metric settings (topology, pose rates) read scene units through it
+        if metric is None:
+            metric = estimate_metric_scale(bundle) if bundle is not None else MetricScale(1.0, "none")
+        self.metric = metric
         self.iteration = 0
         self.history: list[dict] = []  # one row per iteration: loss, psnr, phase
         self.spawned: list[int] = []
@@ -101,7 +107,7 @@ class Trainer:
         dynamic = (resize_depth(b.dynamic_masks, self.data.width, self.data.height) > 0.5
                    if b.has("dynamic_masks") else None)
         return TopologyEvolution(TopologyConfig().scaled(self.cfg.scale), b.semantics, self.data.K.numpy(),
-                                 self.data.width, self.data.height, b.scale,
+                                 self.data.width, self.data.height, self.metric.metres_per_unit,
                                  depth=depth, reserved_ids=ids, dynamic=dynamic,
                                  box_half=tracklet_half_extents(b.tracklets))
 
@@ -109,6 +115,10 @@ class Trainer:
         """Pose-rate factor 30000 / iterations, at most 15 (the balanced preset's): below ~2,000 iterations a
         larger per-step rate only makes the poses jump (a 80-iteration run moved agents by centimetres a step)."""
         return min(30_000 / max(self.cfg.iterations, 1), 15.0)
+
+    def _translation_scale(self) -> float:
+        """The pose-translation rates are metres per step: scene units per metre turns them into scene units."""
+        return self._lr_scale() * self.metric.units_per_metre
 
     def param_groups(self) -> dict[str, list[dict]]:
         g, lr, cfg = self.graph, self.cfg.lr, self.cfg
@@ -120,7 +130,7 @@ class Trainer:
                     "opacity_logits": lr.opacity_logits, "sh": lr.sh}
 
         out: dict[str, list[dict]] = {name: [] for name in GROUPS}
-        out["camera"] = g.camera.param_groups(lr.camera * pose_scale)
+        out["camera"] = g.camera.param_groups(lr.camera * self._translation_scale())
         out["camera"][0]["lr"] = lr.camera_rotation * pose_scale  # camera#omega
         out["static"] = g.background.param_groups("background", gaussian_lrs(lr.means))
         if g.sky is not None:
@@ -129,7 +139,7 @@ class Trainer:
             if node is None:
                 continue
             lrs = gaussian_lrs(lr.agent_means * boost)
-            pose_lr = lr.agent_pose * boost * pose_scale  # translation: raised with Tick-Tock on
+            pose_lr = lr.agent_pose * boost * self._translation_scale()  # translation: raised with Tick-Tock on
             rotation_lr = lr.agent_rotation * pose_scale  # never raised (the paper raises translations only)
             if name == "nonrigid":
                 out["agents"] += node.param_groups(name, lrs, pose_lr, lr.deform, rotation_lr)

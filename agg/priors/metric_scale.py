@@ -1,0 +1,116 @@
+"""How many metres one scene unit is: the engine's metric thresholds on bundles without metric priors.
+
+Training has settings in metres: topology evolution's DBSCAN radius (2.5 m, the paper's), its Kalman noise, the
+size of a spawned car (4.5 x 1.8 x 1.6 m), the static test of a demoted agent; the pose-translation learning rates
+(the paper's rates are metres per step); the deformation network's position scale (about a pedestrian's half
+height). A bundle with metric priors (KITTI ground-truth poses, the synthetic suite) says ``metric = scale x
+scene_units`` and that is the answer. A monocular video has no metres: its poses are normalised so the median
+sparse depth is 1 (docs/PRIORS.md), which on the dashcam sample is about 90 m. Reading its units as metres made
+the DBSCAN radius 2.5 median depths and a spawned car 4.5 median depths long.
+
+So a bundle that is not metric gets an *estimate* from the road: a level camera at height h over a flat road sees
+the road's inverse depth as ``w = (v - v_horizon) / (fy h)`` (``agg.priors.tracklet_ground``), so the road plane
+of the depth prior gives h in scene units, and a dashcam or a car roof camera is ``ASSUMED_CAMERA_HEIGHT_M`` above
+the road (1.2-1.7 m for the cameras of driving datasets: KITTI 1.65 m, a windscreen dashcam about 1.3 m), so one
+scene unit is ``ASSUMED_CAMERA_HEIGHT_M / h`` metres, to within about 20 %. It only sets thresholds and rates; no
+metric number is reported from it (docs/BUNDLE.md: a bundle that is not metric reports none).
+
+Sources, in order: ``"metric"`` (the bundle is metric: ``scale``), ``"camera_height"`` (the road plane of the dense
+depth prior, else of the sparse depth rows, median over the frames that have one), ``"bundle_scale"`` (no depth or
+no road found: the bundle's ``scale``, the old reading, and a warning in the training summary).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+ASSUMED_CAMERA_HEIGHT_M = 1.5  # metres over the road of a driving camera (module doc)
+MAX_FRAMES = 32  # frames whose road plane is fitted (evenly spaced): enough for a median, bounded time
+
+
+@dataclass(frozen=True)
+class MetricScale:
+    metres_per_unit: float  # one scene unit is this many metres
+    source: str  # "metric" | "camera_height" | "bundle_scale"
+    camera_height_units: float | None = None  # the road plane's camera height (scene units), where fitted
+    frames_with_road: int = 0  # frames whose own road plane was found
+
+    def __post_init__(self):
+        if not (math.isfinite(self.metres_per_unit) and self.metres_per_unit > 0):
+            raise ValueError(f"metres_per_unit must be positive and finite, got {self.metres_per_unit}")
+
+    @property
+    def units_per_metre(self) -> float:
+        return 1.0 / self.metres_per_unit
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+def camera_height_from_depth(depth: np.ndarray, fy: float, masks: np.ndarray | None = None,
+                             conf: np.ndarray | None = None, min_conf: float = 0.3) -> tuple[float | None, int]:
+    """Median camera height over the road (scene units) of depth [T, H, W] (0 / non-finite: none), and how many
+    frames had a road plane of their own; (None, 0) when none had. masks [T, H, W] bool: dynamic pixels (they
+    do not vote); conf [T, H, W] or None."""
+    from agg.priors.depth import fit_ground_plane
+    from agg.priors.tracklet_ground import camera_height
+
+    t, h, w = depth.shape
+    heights = []
+    for i in np.unique(np.linspace(0, t - 1, min(MAX_FRAMES, t)).astype(int)):
+        d = np.asarray(depth[i], np.float64)
+        ok = np.isfinite(d) & (d > 0)
+        if masks is not None:
+            ok &= ~np.asarray(masks[i], bool)
+        if conf is not None:
+            ok &= np.asarray(conf[i], np.float64) >= min_conf
+        rr, cc = np.nonzero(ok)
+        step = max(1, int(np.ceil(len(rr) / 4000)))
+        rr, cc = rr[::step], cc[::step]
+        if len(rr) < 3:
+            continue
+        plane = fit_ground_plane(np.stack([cc, rr], 1).astype(np.float64), 1.0 / d[rr, cc], w, h)
+        if plane is None or not plane[1] > 0:
+            continue
+        height = camera_height(plane, fy)
+        if math.isfinite(height) and height > 0:
+            heights.append(height)
+    if not heights:
+        return None, 0
+    return float(np.median(heights)), len(heights)
+
+
+def _sparse_depth_images(bundle) -> np.ndarray:
+    """[T, H, W] float32: each frame's sparse depth rows drawn at their pixels (0 elsewhere)."""
+    t, h, w = bundle.num_frames, bundle.height, bundle.width
+    out = np.zeros((t, h, w), np.float32)
+    for i in range(t):
+        rows = np.asarray(bundle.sparse_depth(i))  # [k, 4] u, v, z, confidence
+        if not len(rows):
+            continue
+        u, v = np.round(rows[:, 0]).astype(int), np.round(rows[:, 1]).astype(int)
+        ok = (u >= 0) & (u < w) & (v >= 0) & (v < h) & np.isfinite(rows[:, 2]) & (rows[:, 2] > 0)
+        out[i, v[ok], u[ok]] = rows[ok, 2]
+    return out
+
+
+def estimate_metric_scale(bundle) -> MetricScale:
+    """Metres per scene unit of a ``SceneBundle`` (module doc)."""
+    if bundle.metric:
+        return MetricScale(float(bundle.scale), "metric")
+    fy = float(np.asarray(bundle.intrinsics)[0][1, 1])
+    masks = np.asarray(bundle.dynamic_masks) > 0.5 if bundle.has("dynamic_masks") else None
+    height, n = None, 0
+    if bundle.has("depth_dense"):
+        height, n = camera_height_from_depth(bundle.dense_depth, fy, masks, bundle.dense_depth_confidence)
+    if height is None and bundle.has("depth_sparse"):
+        height, n = camera_height_from_depth(_sparse_depth_images(bundle), fy, masks)
+    if height is None:
+        return MetricScale(float(bundle.scale), "bundle_scale")
+    return MetricScale(ASSUMED_CAMERA_HEIGHT_M / height, "camera_height", height, n)
+
+
+__all__ = ["MetricScale", "estimate_metric_scale", "camera_height_from_depth", "ASSUMED_CAMERA_HEIGHT_M"]
