@@ -8,8 +8,9 @@
 3. Follows the job's Server-Sent Events with a progress bar (phase, iteration, training PSNR, the engine's ETA).
 4. Renders over gRPC (``worker.grpc_client.AggClient``) the camera of a held-out frame (interpolated between its
    neighbouring training frames, as the evaluation does) and the same camera shifted 1 m to the left, into
-   ``OUT/heldout_view.png`` and ``OUT/novel_view.png``. A monocular scene has no metric scale: metres are
-   converted with the camera's height above the road (measured in the rendered depth, taken as 1.3 m).
+   ``OUT/heldout_view.png`` and ``OUT/novel_view.png``. Metres become scene units through the scene's
+   ``scale`` (a video's is the engine's estimate from the camera height over the road, taken as 1.5 m;
+   ``--camera-height-m`` measures the height in the rendered depth instead).
 5. Prints the novel-view metrics (``GET /v1/scenes/{id}/artifacts/metrics.json``, also saved as
    ``OUT/metrics.json``).
 6. Stops the service: SIGTERM to ``agg serve``, which stops the API, gRPC, its worker and Redis. On Ctrl-C or
@@ -56,7 +57,8 @@ class DemoConfig:
     max_frames: int | None = DEFAULT_MAX_FRAMES
     out: Path = Path("runs/demo")
     shift_m: float = 1.0  # the novel camera: the held-out camera moved this far to its left
-    camera_height_m: float = 1.3  # assumed height of the dashcam above the road (sets the metric scale)
+    camera_height_m: float | None = None  # metres to scene units: None uses the scene's scale (SceneInfo.scale);
+    # a height measures the camera's height above the road in the rendered depth and takes it to be this
     keep_running: bool = False
     startup_timeout_s: float = 180.0
 
@@ -333,11 +335,13 @@ def camera_height_units(depth, alpha, K) -> float | None:
 
 
 def render_views(address: str, key: str, scene_id: str, shift_m: float, out: Path,
-                 camera_height_m: float = 1.3) -> dict:
+                 camera_height_m: float | None = None) -> dict:
     """Render over gRPC a held-out frame's camera and the same camera ``shift_m`` metres to its left; PNGs in
-    ``out``. A monocular scene has no metric scale (GetScene's ``scale`` is 1 when unknown), so metres are converted
-    with the camera's height above the road, measured in the held-out view's depth (``camera_height_units``) and
-    taken to be ``camera_height_m``; without a usable road it falls back to ``1 / scale`` units per metre.
+    ``out``. Metres become scene units through GetScene's ``scale`` (metres per unit: exact for metric priors, else
+    the engine's estimate from the camera height over the road, agg/priors/metric_scale.py). With
+    ``camera_height_m`` the camera's height above the road is measured in the held-out view's depth
+    (``camera_height_units``) and taken to be that many metres instead; without a usable road it falls back to the
+    scale.
     Returns {frame, timestamp_us, shift_units, units_per_m_source, paths, size, mean/std of the novel view}."""
     import numpy as np
     import torch
@@ -364,11 +368,11 @@ def render_views(address: str, key: str, scene_id: str, shift_m: float, out: Pat
         first = client.render(scene_id, ts, [spec("heldout", heldout)], depth=True, alpha=True)[0]
         i = cam.intrinsics
         K = np.array([[i.fx, 0, i.cx], [0, i.fy, i.cy], [0, 0, 1]])
-        height = camera_height_units(first["depth"], first["alpha"], K)
+        height = camera_height_units(first["depth"], first["alpha"], K) if camera_height_m else None
         if height is not None:
             units_per_m, source = height / camera_height_m, f"camera {camera_height_m:g} m above the road"
         else:
-            units_per_m, source = 1.0 / (info.scale or 1.0), "the scene's scale (no road found below the camera)"
+            units_per_m, source = 1.0 / (info.scale or 1.0), f"scene's scale, {info.scale or 1.0:.4g} m per unit"
         units = shift_m * units_per_m
         novel = heldout.copy()
         novel[:3, 3] -= heldout[:3, 0] * units  # camera x points right: minus x is left
@@ -502,8 +506,9 @@ def register(subparsers) -> None:
                    help="OpenCV calibration file sent with the upload (default: the sample's, with the sample)")
     p.add_argument("--no-calibration", action="store_true", help="send no calibration (intrinsics estimated)")
     p.add_argument("--shift-m", type=float, default=1.0, help="novel camera: metres left of the held-out camera")
-    p.add_argument("--camera-height-m", type=float, default=1.3,
-                   help="height of the camera above the road, which converts metres to scene units (default 1.3)")
+    p.add_argument("--camera-height-m", type=float, default=None,
+                   help="height of the camera above the road, measured in the rendered depth to convert metres to "
+                        "scene units (default: the scene's own scale, estimated by the engine for a video)")
     p.add_argument("--out", type=Path, default=Path("runs/demo"), help="output folder (default runs/demo)")
     p.set_defaults(func=main_args)
 
