@@ -5,7 +5,7 @@ size of a spawned car (4.5 x 1.8 x 1.6 m), the static test of a demoted agent; t
 (the paper's rates are metres per step); the deformation network's position scale (about a pedestrian's half
 height). A bundle with metric priors (KITTI ground-truth poses, the synthetic suite) says ``metric = scale x
 scene_units`` and that is the answer. A monocular video has no metres: its poses are normalised so the median
-sparse depth is 1 (docs/PRIORS.md), which on the dashcam sample is about 90 m. Reading its units as metres made
+sparse depth is 1 (docs/PRIORS.md), which on the dashcam sample is about 107 m. Reading its units as metres made
 the DBSCAN radius 2.5 median depths and a spawned car 4.5 median depths long.
 
 So a bundle that is not metric gets an *estimate* from the road: a level camera at height h over a flat road sees
@@ -17,7 +17,7 @@ metric number is reported from it (docs/BUNDLE.md: a bundle that is not metric r
 
 Sources, in order: ``"metric"`` (the bundle is metric: ``scale``), ``"camera_height"`` (the road plane of the dense
 depth prior, else of the sparse depth rows, median over the frames that have one), ``"bundle_scale"`` (no depth or
-no road found: the bundle's ``scale``, the old reading, and a warning in the training summary).
+no road found: the bundle's ``scale``, the old reading; ``scene.json``'s ``metric_scale.source`` says so).
 """
 
 from __future__ import annotations
@@ -50,21 +50,26 @@ class MetricScale:
         return asdict(self)
 
 
-def camera_height_from_depth(depth: np.ndarray, fy: float, masks: np.ndarray | None = None,
-                             conf: np.ndarray | None = None, min_conf: float = 0.3) -> tuple[float | None, int]:
-    """Median camera height over the road (scene units) of depth [T, H, W] (0 / non-finite: none), and how many
-    frames had a road plane of their own; (None, 0) when none had. masks [T, H, W] bool: dynamic pixels (they
-    do not vote); conf [T, H, W] or None."""
+def sampled_frames(num_frames: int) -> list[int]:
+    """Up to ``MAX_FRAMES`` evenly spaced frame indices."""
+    return [int(i) for i in np.unique(np.linspace(0, num_frames - 1, min(MAX_FRAMES, num_frames)).astype(int))]
+
+
+def camera_height_from_depth(depth, fy: float, frames: list[int], masks=None, conf=None,
+                             min_conf: float = 0.3) -> tuple[float | None, int]:
+    """Median camera height over the road (scene units) over ``frames``, and how many of them had a road plane;
+    (None, 0) when none had. ``depth[i]``: frame i's [H, W] z-depth (0 / non-finite: none; an array, a memmap or a
+    dict of the frames); ``masks[i]`` [H, W]: dynamic pixels (> 0.5; they do not vote); ``conf[i]`` [H, W]."""
     from agg.priors.depth import fit_ground_plane
     from agg.priors.tracklet_ground import camera_height
 
-    t, h, w = depth.shape
     heights = []
-    for i in np.unique(np.linspace(0, t - 1, min(MAX_FRAMES, t)).astype(int)):
+    for i in frames:
         d = np.asarray(depth[i], np.float64)
+        h, w = d.shape
         ok = np.isfinite(d) & (d > 0)
         if masks is not None:
-            ok &= ~np.asarray(masks[i], bool)
+            ok &= ~(np.asarray(masks[i]) > 0.5)
         if conf is not None:
             ok &= np.asarray(conf[i], np.float64) >= min_conf
         rr, cc = np.nonzero(ok)
@@ -83,17 +88,18 @@ def camera_height_from_depth(depth: np.ndarray, fy: float, masks: np.ndarray | N
     return float(np.median(heights)), len(heights)
 
 
-def _sparse_depth_images(bundle) -> np.ndarray:
-    """[T, H, W] float32: each frame's sparse depth rows drawn at their pixels (0 elsewhere)."""
-    t, h, w = bundle.num_frames, bundle.height, bundle.width
-    out = np.zeros((t, h, w), np.float32)
-    for i in range(t):
+def _sparse_depth_images(bundle, frames: list[int]) -> dict[int, np.ndarray]:
+    """{frame: [H, W] float32}: each given frame's sparse depth rows drawn at their pixels (0 elsewhere)."""
+    h, w = bundle.height, bundle.width
+    out = {}
+    for i in frames:
+        img = np.zeros((h, w), np.float32)
         rows = np.asarray(bundle.sparse_depth(i))  # [k, 4] u, v, z, confidence
-        if not len(rows):
-            continue
-        u, v = np.round(rows[:, 0]).astype(int), np.round(rows[:, 1]).astype(int)
-        ok = (u >= 0) & (u < w) & (v >= 0) & (v < h) & np.isfinite(rows[:, 2]) & (rows[:, 2] > 0)
-        out[i, v[ok], u[ok]] = rows[ok, 2]
+        if len(rows):
+            u, v = np.round(rows[:, 0]).astype(int), np.round(rows[:, 1]).astype(int)
+            ok = (u >= 0) & (u < w) & (v >= 0) & (v < h) & np.isfinite(rows[:, 2]) & (rows[:, 2] > 0)
+            img[v[ok], u[ok]] = rows[ok, 2]
+        out[i] = img
     return out
 
 
@@ -102,15 +108,17 @@ def estimate_metric_scale(bundle) -> MetricScale:
     if bundle.metric:
         return MetricScale(float(bundle.scale), "metric")
     fy = float(np.asarray(bundle.intrinsics)[0][1, 1])
-    masks = np.asarray(bundle.dynamic_masks) > 0.5 if bundle.has("dynamic_masks") else None
+    frames = sampled_frames(bundle.num_frames)
+    masks = bundle.dynamic_masks if bundle.has("dynamic_masks") else None  # read frame by frame
     height, n = None, 0
     if bundle.has("depth_dense"):
-        height, n = camera_height_from_depth(bundle.dense_depth, fy, masks, bundle.dense_depth_confidence)
+        height, n = camera_height_from_depth(bundle.dense_depth, fy, frames, masks, bundle.dense_depth_confidence)
     if height is None and bundle.has("depth_sparse"):
-        height, n = camera_height_from_depth(_sparse_depth_images(bundle), fy, masks)
+        height, n = camera_height_from_depth(_sparse_depth_images(bundle, frames), fy, frames, masks)
     if height is None:
         return MetricScale(float(bundle.scale), "bundle_scale")
     return MetricScale(ASSUMED_CAMERA_HEIGHT_M / height, "camera_height", height, n)
 
 
-__all__ = ["MetricScale", "estimate_metric_scale", "camera_height_from_depth", "ASSUMED_CAMERA_HEIGHT_M"]
+__all__ = ["MetricScale", "estimate_metric_scale", "camera_height_from_depth", "sampled_frames",
+           "ASSUMED_CAMERA_HEIGHT_M"]
