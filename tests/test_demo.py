@@ -9,6 +9,7 @@ novel view over gRPC and prints the metrics.
 from __future__ import annotations
 
 import json
+import os
 import signal
 import subprocess
 import sys
@@ -99,8 +100,11 @@ def test_demo_ctrl_c_stops_everything(tmp_path):
         proc.send_signal(signal.SIGINT)  # ... until Ctrl-C
         _, stderr = proc.communicate(timeout=60)
     finally:
-        if proc.poll() is None:
+        if proc.poll() is None:  # the demo did not stop: kill it and the service it started (no orphans)
             proc.kill()
+            proc.wait()
+            for pid in service_processes(out / "service"):
+                os.kill(pid, signal.SIGKILL)
     assert proc.returncode == 130, stderr[-2000:]
     assert "interrupted: stopping the service" in stderr
     assert service_processes(out / "service") == []

@@ -112,3 +112,20 @@ def test_bad_arguments_raise_clear_errors():
         rasterize(*args, K=torch.zeros(3, 3), width=W, height=H, viewmat=torch.eye(4))
     with pytest.raises(ValueError, match=r"SH needs K = \(d\+1\)\^2"):
         rasterize(*args[:4], sh=torch.zeros(10, 5, 3), K=look_K(W, H), width=W, height=H, viewmat=torch.eye(4))
+
+
+def test_a_stale_build_baton_does_not_hang_the_next_load():
+    """A process killed while building leaves torch's ``lock`` file in the build folder; the next load removes it
+    under its own flock and goes on, instead of waiting forever."""
+    import subprocess
+    import sys
+
+    from agg.render import native
+
+    code = "from agg.render import native; native.load(); print('loaded')"
+    first = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600)
+    assert first.returncode == 0 and "loaded" in first.stdout, first.stderr[-2000:]
+    (native.cache_dir() / "lock").touch()  # what a SIGKILLed builder leaves
+    again = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert again.returncode == 0 and "loaded" in again.stdout, again.stderr[-2000:]
+    assert not (native.cache_dir() / "lock").exists()

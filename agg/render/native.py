@@ -1,12 +1,21 @@
 """Builds and loads the native CPU kernels (csrc/: compositing and projection) on first use.
 
 The extension is compiled with ``torch.utils.cpp_extension.load`` into a per-user cache folder, keyed by a hash of
-the source, the flags, torch's version and the machine, so it is built once per machine and never inside an
-isolated pip build environment (which would pull a multi-GB CUDA torch). Set ``AGG_EXT_DIR`` to move the cache.
+the source, its folder, the flags, torch's version and the machine, so it is built once per machine and checkout
+and never inside an isolated pip build environment (which would pull a multi-GB CUDA torch). Set ``AGG_EXT_DIR``
+to move the cache.
+
+torch marks a build in progress with a ``lock`` file in the build folder and waits, without a timeout, for it to
+go. A process killed while building (a cancelled job's work horse is SIGKILLed) leaves that file behind, and
+every later first render on the machine waited forever. So builds are also serialised with ``fcntl.flock`` on
+``build.flock``, which the kernel releases when its holder dies: whoever holds it is the only builder, and a
+``lock`` file found then is stale and removed. Two checkouts shared one folder before the source folder was in
+the key; each switch rebuilt (ninja's build file names the sources' paths).
 """
 
 from __future__ import annotations
 
+import fcntl
 import hashlib
 import os
 import platform
@@ -51,7 +60,7 @@ def cache_dir() -> Path:
     flags = CFLAGS + _arch_flags()
     key = hashlib.sha256(
         b"".join(src.read_bytes() for src in SOURCES) + " ".join(flags).encode() + torch.__version__.encode()
-        + sys.version.encode() + _cpu_model().encode()
+        + sys.version.encode() + _cpu_model().encode() + str(CSRC.resolve()).encode()
     ).hexdigest()[:16]
     root = Path(os.environ.get("AGG_EXT_DIR", Path.home() / ".cache" / "agg" / "ext"))
     return root / f"render_{key}"
@@ -76,15 +85,20 @@ def load() -> ModuleType:
         build_dir = cache_dir()
         build_dir.mkdir(parents=True, exist_ok=True)
         flags = CFLAGS + _arch_flags()
-        try:
-            _module = load_ext(
-                name="agg_render_cpu",
-                sources=[str(src) for src in SOURCES],
-                extra_cflags=flags,
-                extra_ldflags=["-fopenmp"],
-                build_directory=str(build_dir),
-                verbose=False,
-            )
-        except Exception as exc:  # compiler errors surface as RuntimeError / subprocess errors
-            raise NativeBuildError(f"building the native CPU kernels in {build_dir} failed: {exc}") from exc
+        with open(build_dir / "build.flock", "a") as guard:
+            fcntl.flock(guard, fcntl.LOCK_EX)  # released by the kernel if this process dies (module doc)
+            try:
+                (build_dir / "lock").unlink(missing_ok=True)  # torch's baton: stale, nobody else builds now
+                _module = load_ext(
+                    name="agg_render_cpu",
+                    sources=[str(src) for src in SOURCES],
+                    extra_cflags=flags,
+                    extra_ldflags=["-fopenmp"],
+                    build_directory=str(build_dir),
+                    verbose=False,
+                )
+            except Exception as exc:  # compiler errors surface as RuntimeError / subprocess errors
+                raise NativeBuildError(f"building the native CPU kernels in {build_dir} failed: {exc}") from exc
+            finally:
+                fcntl.flock(guard, fcntl.LOCK_UN)
         return _module
