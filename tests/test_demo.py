@@ -88,23 +88,45 @@ def test_demo_end_to_end(tmp_path):
 @needs_redis
 @pytest.mark.timeout(150)
 def test_demo_ctrl_c_stops_everything(tmp_path):
+    """Ctrl-C while the job trains: the demo cancels it and stops the service. The signal is sent once the demo
+    says it follows the job ("[3/5]") and the job's scene folder exists, so it lands while the job runs (the
+    tiny job takes several seconds); both pipes are drained meanwhile."""
+    import threading
+
     out = tmp_path / "demo"
     clip = small_clip(tmp_path / "clip.mp4")
     proc = subprocess.Popen(demo_cmd(out, clip), cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    lines: dict[str, list[str]] = {"out": [], "err": []}
+    following = threading.Event()
+
+    def drain(name, stream):
+        for line in stream:
+            lines[name].append(line)
+            if name == "out" and line.startswith("[3/5]"):
+                following.set()
+
+    readers = [threading.Thread(target=drain, args=(n, s), daemon=True)
+               for n, s in (("out", proc.stdout), ("err", proc.stderr))]
+    for r in readers:
+        r.start()
+    scenes = out / "service" / "scenes"
     try:
         deadline = time.monotonic() + 90
-        while not (out / "service" / "scenes").is_dir() or not any((out / "service" / "scenes").iterdir()):
+        while not (following.is_set() and scenes.is_dir() and any(scenes.iterdir())):
             assert proc.poll() is None and time.monotonic() < deadline, "the job never started"
-            time.sleep(0.2)
+            time.sleep(0.05)
         assert service_processes(out / "service")  # the service runs ...
         proc.send_signal(signal.SIGINT)  # ... until Ctrl-C
-        _, stderr = proc.communicate(timeout=60)
+        proc.wait(timeout=60)
     finally:
         if proc.poll() is None:  # the demo did not stop: kill it and the service it started (no orphans)
             proc.kill()
             proc.wait()
             for pid in service_processes(out / "service"):
                 os.kill(pid, signal.SIGKILL)
+        for r in readers:
+            r.join(timeout=10)
+    stderr = "".join(lines["err"])
     assert proc.returncode == 130, stderr[-2000:]
     assert "interrupted: stopping the service" in stderr
     assert service_processes(out / "service") == []
