@@ -95,7 +95,10 @@ def test_demo_ctrl_c_stops_everything(tmp_path):
 
     out = tmp_path / "demo"
     clip = small_clip(tmp_path / "clip.mp4")
-    proc = subprocess.Popen(demo_cmd(out, clip), cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    # a shell runs background jobs with SIGINT ignored, and Python keeps an ignored SIGINT: give the demo Ctrl-C
+    # back, however the test run was started
+    proc = subprocess.Popen(demo_cmd(out, clip), cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     lines: dict[str, list[str]] = {"out": [], "err": []}
     following = threading.Event()
 
