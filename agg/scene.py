@@ -68,6 +68,13 @@ class OutOfRange(SceneRequestError):
 # ----------------------------------------------------------------------------------------------- validation
 
 
+def metres_per_unit(meta: dict) -> float | None:
+    """Metres per scene unit of a scene's ``scene.json`` (``metric_scale``: exact for metric priors, else an estimate
+    from the camera height, agg/priors/metric_scale.py); None for a scene trained before it was recorded."""
+    value = (meta.get("metric_scale") or {}).get("metres_per_unit")
+    return float(value) if value else None
+
+
 def pose_matrix(values, what: str = "pose") -> np.ndarray:
     """A validated rigid [4, 4] float64 matrix from 16 row-major values or a [4, 4] array; the rotation block is
     re-orthonormalised (SVD) so tiny float errors do not shear the render."""
@@ -247,10 +254,7 @@ class Scene:
 
     @property
     def metres_per_unit(self) -> float | None:
-        """Metres per scene unit (``scene.json`` ``metric_scale``: exact for metric priors, else an estimate from
-        the camera height, agg/priors/metric_scale.py); None for a scene trained before it was recorded."""
-        value = (self.meta.get("metric_scale") or {}).get("metres_per_unit")
-        return float(value) if value is not None else None
+        return metres_per_unit(self.meta)
 
     def frame_at(self, timestamp_us: int) -> float:
         """Continuous frame index of a timestamp (integer at frame timestamps); ``OutOfRange`` outside the clip."""

@@ -7,7 +7,7 @@ from collections.abc import Callable, Iterable
 
 import numpy as np
 
-from agg.scene import Scene, SceneNotReady
+from agg.scene import Scene, SceneNotReady, metres_per_unit
 from worker.grpc_common import Auth, unary
 from worker.grpc_convert import intrinsics_to_proto, json_safe, pose_to_proto
 from worker.grpc_proto import common_pb2, scene_pb2, scene_pb2_grpc
@@ -17,13 +17,6 @@ CAMERA_NAME = "camera_0"  # AGG reconstructs monocular clips
 NODE_KINDS = {"camera": scene_pb2.NODE_KIND_CAMERA, "background": scene_pb2.NODE_KIND_BACKGROUND,
               "sky": scene_pb2.NODE_KIND_SKY, "rigid": scene_pb2.NODE_KIND_RIGID_AGENT,
               "non-rigid": scene_pb2.NODE_KIND_NON_RIGID_AGENT}
-
-
-def _metres_per_unit(meta: dict) -> float:
-    """SceneInfo.scale: scene.json's ``metric_scale`` (exact for metric priors, else the camera-height estimate of
-    agg/priors/metric_scale.py), 1 when the scene has none."""
-    value = (meta.get("metric_scale") or {}).get("metres_per_unit")
-    return float(value) if value else 1.0
 
 
 def _time_range(ts) -> common_pb2.TimeRange:
@@ -85,7 +78,7 @@ class SceneServicer(scene_pb2_grpc.SceneServiceServicer):
                                    time_range=_time_range(ts), timestamps_us=ts,
                                    train_frames=[int(i) for i in meta.get("train_frames") or []],
                                    test_frames=[int(i) for i in meta.get("test_frames") or []],
-                                   preset=str(meta.get("preset", "")), scale=_metres_per_unit(meta))
+                                   preset=str(meta.get("preset", "")), scale=metres_per_unit(meta) or 1.0)
         try:
             scene = self.cache.get(folder)
         except SceneNotReady:

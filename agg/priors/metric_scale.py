@@ -34,7 +34,7 @@ MAX_FRAMES = 32  # frames whose road plane is fitted (evenly spaced): enough for
 @dataclass(frozen=True)
 class MetricScale:
     metres_per_unit: float  # one scene unit is this many metres
-    source: str  # "metric" | "camera_height" | "bundle_scale"
+    source: str  # "metric" | "camera_height" | "bundle_scale" (| "none": a Trainer without a bundle reads 1)
     camera_height_units: float | None = None  # the road plane's camera height (scene units), where fitted
     frames_with_road: int = 0  # frames whose own road plane was found
 
@@ -61,23 +61,16 @@ def camera_height_from_depth(depth, fy: float, frames: list[int], masks=None, co
     (None, 0) when none had. ``depth[i]``: frame i's [H, W] z-depth (0 / non-finite: none; an array, a memmap or a
     dict of the frames); ``masks[i]`` [H, W]: dynamic pixels (> 0.5; they do not vote); ``conf[i]`` [H, W]."""
     from agg.priors.depth import fit_ground_plane
-    from agg.priors.tracklet_ground import camera_height
+    from agg.priors.tracklet_ground import camera_height, road_rows
 
     heights = []
     for i in frames:
-        d = np.asarray(depth[i], np.float64)
-        h, w = d.shape
-        ok = np.isfinite(d) & (d > 0)
-        if masks is not None:
-            ok &= ~(np.asarray(masks[i]) > 0.5)
-        if conf is not None:
-            ok &= np.asarray(conf[i], np.float64) >= min_conf
-        rr, cc = np.nonzero(ok)
-        step = max(1, int(np.ceil(len(rr) / 4000)))
-        rr, cc = rr[::step], cc[::step]
-        if len(rr) < 3:
+        mask = None if masks is None else np.asarray(masks[i]) > 0.5
+        rows = road_rows(depth[i], None if conf is None else conf[i], mask, min_conf)  # [k, 4] u, v, z, 1
+        if len(rows) < 3:
             continue
-        plane = fit_ground_plane(np.stack([cc, rr], 1).astype(np.float64), 1.0 / d[rr, cc], w, h)
+        h, w = np.shape(depth[i])
+        plane = fit_ground_plane(rows[:, :2], 1.0 / rows[:, 2], w, h)
         if plane is None or not plane[1] > 0:
             continue
         height = camera_height(plane, fy)

@@ -28,16 +28,8 @@ def ground_planes(depth: np.ndarray, conf: np.ndarray | None, masks: np.ndarray,
     without one take the plane fitted to every frame's pixels pooled. Deterministic (strided samples, seeded RANSAC).
     """
     t, h, w = depth.shape
-    rows: list[np.ndarray] = []
-    for i in range(t):
-        d = np.asarray(depth[i], np.float64)
-        ok = np.isfinite(d) & (d > 0) & ~masks[i]
-        if conf is not None:
-            ok &= np.asarray(conf[i], np.float64) >= min_conf
-        rr, cc = np.nonzero(ok)
-        step = max(1, int(np.ceil(len(rr) / max_samples)))
-        rr, cc = rr[::step], cc[::step]
-        rows.append(np.stack([cc, rr, d[rr, cc], np.ones(len(rr))], 1).astype(np.float64))  # [k, 4] u, v, z, c
+    rows = [road_rows(depth[i], None if conf is None else conf[i], masks[i], min_conf, max_samples)
+            for i in range(t)]
     planes: list[np.ndarray | None] = []
     for r in rows:
         planes.append(fit_ground_plane(r[:, :2], 1.0 / r[:, 2], w, h) if len(r) >= 3 else None)
@@ -45,6 +37,23 @@ def ground_planes(depth: np.ndarray, conf: np.ndarray | None, masks: np.ndarray,
         pooled = clip_ground_plane([r[::max(1, t // 4)] for r in rows], w, h) if any(len(r) for r in rows) else None
         planes = [pooled if p is None else p for p in planes]
     return planes
+
+
+def road_rows(depth: np.ndarray, conf: np.ndarray | None, mask: np.ndarray | None, min_conf: float,
+              max_samples: int = 4000) -> np.ndarray:
+    """[k, 4] float64 rows (u, v, z, 1) of one frame's depth [H, W] that may vote for its road plane: finite, > 0,
+    not dynamic (mask [H, W] bool, or None), confidence >= min_conf (conf [H, W] or None); strided to at most about
+    ``max_samples`` (deterministic)."""
+    d = np.asarray(depth, np.float64)
+    ok = np.isfinite(d) & (d > 0)
+    if mask is not None:
+        ok &= ~np.asarray(mask, bool)
+    if conf is not None:
+        ok &= np.asarray(conf, np.float64) >= min_conf
+    rr, cc = np.nonzero(ok)
+    step = max(1, int(np.ceil(len(rr) / max_samples)))
+    rr, cc = rr[::step], cc[::step]
+    return np.stack([cc, rr, d[rr, cc], np.ones(len(rr))], 1).astype(np.float64)
 
 
 def road_inverse_depth(plane: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -120,5 +129,5 @@ def contact_verdicts(ucol: np.ndarray, bottom: np.ndarray, own_depth: np.ndarray
     return out
 
 
-__all__ = ["ground_planes", "road_inverse_depth", "camera_height", "column_bottoms", "column_medians",
+__all__ = ["ground_planes", "road_rows", "road_inverse_depth", "camera_height", "column_bottoms", "column_medians",
            "contact_verdicts", "FLOATING", "UNKNOWN", "OCCLUDED", "GROUNDED"]
