@@ -16,6 +16,7 @@ is how held-out frames (interpolated poses) and simulators (moved or hidden agen
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 from torch import Tensor, nn
 
@@ -42,6 +43,13 @@ def _track_poses(bundle: SceneBundle, rows: list[int]) -> tuple[Tensor, Tensor]:
     return wfb, valid
 
 
+def _track_half_extents(bundle: SceneBundle, rows: list[int]) -> Tensor:
+    """[K, 3] box half extents (x = l, y = h, z = w) of the given tracklet rows: half their median box (NaN where a
+    track has no size; the node treats it as unknown)."""
+    return torch.as_tensor(np.array([0.5 * bundle.tracklets.box_size(k) for k in rows]).reshape(-1, 3),
+                           dtype=torch.float32)
+
+
 class SceneGraph(nn.Module):
     def __init__(self, camera: CameraNode, background: GaussianParams, K: Tensor, width: int, height: int,
                  rigid: RigidAgents | None = None, nonrigid: RigidAgents | None = None, sky: nn.Module | None = None):
@@ -65,14 +73,15 @@ class SceneGraph(nn.Module):
         if init["rigid"] is not None:
             g, instance, rows = init["rigid"]
             wfb, valid = _track_poses(bundle, rows)
-            rigid = RigidAgents(g, torch.as_tensor(instance), wfb, valid, torch.as_tensor(ids[rows]))
+            rigid = RigidAgents(g, torch.as_tensor(instance), wfb, valid, torch.as_tensor(ids[rows]),
+                                _track_half_extents(bundle, rows))
         if init["non-rigid"] is not None:
             from agg.nodes.nonrigid import DeformConfig, NonRigidAgents
 
             g, instance, rows = init["non-rigid"]
             wfb, valid = _track_poses(bundle, rows)
             nonrigid = NonRigidAgents(g, torch.as_tensor(instance), wfb, valid, torch.as_tensor(ids[rows]),
-                                      config=deform or DeformConfig())
+                                      config=deform or DeformConfig(), half_extents=_track_half_extents(bundle, rows))
         sky_node = None
         from agg.nodes.sky import SkyNode, has_sky
 

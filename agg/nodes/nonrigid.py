@@ -94,8 +94,9 @@ class NonRigidAgents(RigidAgents):
     """K non-rigid instances: ``RigidAgents`` plus a shared ``DeformationField`` and per-instance embeddings."""
 
     def __init__(self, gaussians: GaussianParams, instance: Tensor, world_from_box: Tensor, valid: Tensor,
-                 track_ids: Tensor | None = None, config: DeformConfig = DeformConfig()):
-        super().__init__(gaussians, instance, world_from_box, valid, track_ids)
+                 track_ids: Tensor | None = None, config: DeformConfig = DeformConfig(),
+                 half_extents: Tensor | None = None):
+        super().__init__(gaussians, instance, world_from_box, valid, track_ids, half_extents)
         self.config = config
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(config.seed)
@@ -149,7 +150,7 @@ class NonRigidAgents(RigidAgents):
     def from_state(cls, state: dict) -> "NonRigidAgents":
         d = state["deform"]
         node = cls(GaussianParams.from_state(state["gaussians"]), state["instance"], state["prior"], state["valid"],
-                   state["track_ids"], DeformConfig(**d["config"]))
+                   state["track_ids"], DeformConfig(**d["config"]), state.get("half_extents"))
         node.deform.load_state_dict(d["mlp"])
         with torch.no_grad():
             node.omega.copy_(state["omega"])

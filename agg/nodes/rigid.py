@@ -5,7 +5,9 @@ All rigid instances share one ``GaussianParams`` (canonical box frame, docs/BUND
 learnable per-frame corrections ``omega`` [T, K, 3] (so(3), box frame) and ``tau`` [T, K, 3] (box frame), zero at
 the start: ``world_from_box = prior @ [exp(omega) | tau]``. ``valid`` [T, K] says where an instance exists; in
 other frames its Gaussians get opacity 0 (drivestudio's validity mask), so they neither render nor receive
-gradients.
+gradients. ``half_extents`` [K, 3] is each instance's box (half length, height, width along the box axes; +inf
+where unknown): ``confine`` keeps the canonical means inside it, grown by a margin, so that an agent models its
+object and not the road or the scene around it.
 """
 
 from __future__ import annotations
@@ -36,7 +38,7 @@ class RigidAgents(nn.Module):
     """K rigid instances: canonical Gaussians ``gaussians`` with ``instance`` [N] in 0..K-1, and their poses."""
 
     def __init__(self, gaussians: GaussianParams, instance: Tensor, world_from_box: Tensor, valid: Tensor,
-                 track_ids: Tensor | None = None):
+                 track_ids: Tensor | None = None, half_extents: Tensor | None = None):
         super().__init__()
         wfb = torch.as_tensor(world_from_box, dtype=torch.float32)
         if wfb.ndim != 4 or wfb.shape[2:] != (4, 4):
@@ -60,6 +62,7 @@ class RigidAgents(nn.Module):
         if ids.shape != (k,):
             raise ValueError(f"track_ids must be [{k}]")
         self.register_buffer("track_ids", ids.clone())  # [K] the tracklet id of each instance
+        self.register_buffer("half_extents", _half_extents(half_extents, k))  # [K, 3] box half sizes (inf: unknown)
 
     @property
     def num_instances(self) -> int:
@@ -114,11 +117,22 @@ class RigidAgents(nn.Module):
         """Parameters with a per-instance axis 1 ([T, K, ...]); ``add_instances`` / ``remove_instances`` resize them."""
         return [self.omega, self.tau]
 
+    def confine(self, margin: float) -> None:
+        """Clamp every canonical mean into its instance's box grown by ``margin`` (a fraction of the half extents),
+        in place; instances of unknown size are left free. Called after each optimiser step on the agents: a
+        projected gradient step, so no Gaussian can drift out to model the road beside or under its agent."""
+        lim = (self.half_extents * (1.0 + margin))[self.instance]  # [N, 3]
+        if len(lim) and torch.isfinite(lim).any():
+            with torch.no_grad():
+                means = self.gaussians.means
+                means.copy_(torch.maximum(torch.minimum(means, lim), -lim))
+
     def add_instances(self, gaussians: GaussianParams, instance: Tensor, world_from_box: Tensor, valid: Tensor,
-                      track_ids: Tensor, optimizer: torch.optim.Optimizer | None = None) -> None:
+                      track_ids: Tensor, optimizer: torch.optim.Optimizer | None = None,
+                      half_extents: Tensor | None = None) -> None:
         """Append k instances: their canonical Gaussians with local ``instance`` [M] in 0..k-1, pose priors
-        ``world_from_box`` [T, k, 4, 4], ``valid`` [T, k] and ``track_ids`` [k]; new rows start with zero
-        corrections and zero optimiser moments."""
+        ``world_from_box`` [T, k, 4, 4], ``valid`` [T, k], ``track_ids`` [k] and box ``half_extents`` [k, 3]
+        (None: unknown); new rows start with zero corrections and zero optimiser moments."""
         wfb = torch.as_tensor(world_from_box, dtype=torch.float32).to(self.prior)
         valid = torch.as_tensor(valid, dtype=torch.bool).to(self.valid.device)
         k_new = wfb.shape[1]
@@ -130,6 +144,7 @@ class RigidAgents(nn.Module):
         self.prior = torch.cat([self.prior, torch.where(valid[..., None, None], wfb, torch.eye(4).to(wfb))], 1)
         self.valid = torch.cat([self.valid, valid], 1)
         self.track_ids = torch.cat([self.track_ids, torch.as_tensor(track_ids, dtype=torch.long).reshape(-1)])
+        self.half_extents = torch.cat([self.half_extents, _half_extents(half_extents, k_new).to(self.half_extents)])
         self._resize_instances(optimizer, lambda v: torch.cat([v, v.new_zeros(v.shape[0], k_new, *v.shape[2:])], 1))
 
     def remove_instances(self, keep: Tensor, optimizer: torch.optim.Optimizer | None = None) -> None:
@@ -141,6 +156,7 @@ class RigidAgents(nn.Module):
         new_index = torch.cumsum(keep.long(), 0) - 1  # [K] old instance -> new
         self.instance = new_index[self.instance[keep[self.instance]]]
         self.prior, self.valid, self.track_ids = self.prior[:, keep], self.valid[:, keep], self.track_ids[keep]
+        self.half_extents = self.half_extents[keep]
         self._resize_instances(optimizer, lambda v: v[:, keep].clone())
 
     def _resize_instances(self, optimizer, fn) -> None:
@@ -158,13 +174,24 @@ class RigidAgents(nn.Module):
         """Tensors that rebuild the node with ``from_state`` (whatever its size)."""
         return {"gaussians": self.gaussians.state(), "instance": self.instance.clone(), "prior": self.prior.clone(),
                 "valid": self.valid.clone(), "track_ids": self.track_ids.clone(),
+                "half_extents": self.half_extents.clone(),
                 "omega": self.omega.detach().clone(), "tau": self.tau.detach().clone()}
 
     @classmethod
     def from_state(cls, state: dict) -> "RigidAgents":
         node = cls(GaussianParams.from_state(state["gaussians"]), state["instance"], state["prior"], state["valid"],
-                   state["track_ids"])
+                   state["track_ids"], state.get("half_extents"))  # checkpoints before boxes: sizes unknown
         with torch.no_grad():
             node.omega.copy_(state["omega"])
             node.tau.copy_(state["tau"])
         return node
+
+
+def _half_extents(half: Tensor | None, k: int) -> Tensor:
+    """[k, 3] float32 box half extents (+inf rows where ``half`` is None or not finite and positive)."""
+    if half is None:
+        return torch.full((k, 3), float("inf"))
+    h = torch.as_tensor(half, dtype=torch.float32).reshape(k, 3).clone()
+    bad = ~(torch.isfinite(h) & (h > 0)).all(-1)
+    h[bad] = float("inf")
+    return h

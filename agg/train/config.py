@@ -18,6 +18,7 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field, fields, replace
 
 from agg.nodes.init import InitConfig
+from agg.train.topology import TopologyConfig
 from agg.train.camera_tracking import TrackingConfig
 
 ABLATIONS = ("tick-tock", "semantic", "topology")
@@ -69,12 +70,15 @@ class TrainConfig:
     opacity_reset_every: int = 3_000
     grad_threshold: float = 2e-4
     densify_grad: str = "photo"  # what the densifier's screen gradient is of: "photo" (L_photo) | "total" (+ L_sem)
+    agent_box_margin: float | None = 0.25  # agents' canonical means stay in their box grown by this fraction of its
+    # half extents (None: free, as before; docs/TRAINING.md "Agents stay in their boxes")
     ablate: frozenset = frozenset()
     seed: int = 0
     eval_every: int = 5  # hold out every 5th frame (frames i % 5 == 4)
     checkpoint_every: int = 500  # iterations between checkpoints (0: only at the end / on cancel)
     init: InitConfig = field(default_factory=InitConfig)
     tracking: TrackingConfig | None = field(default_factory=TrackingConfig)  # camera tracking (None: off)
+    evolution: TopologyConfig = field(default_factory=TopologyConfig)  # topology evolution's settings (paper scale)
 
     def __post_init__(self):
         if self.densify_grad not in ("photo", "total"):

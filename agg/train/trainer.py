@@ -32,8 +32,8 @@ from agg.train.losses import photometric_loss, semantic_attention_loss
 from agg.train.tick_tock import GROUPS, TickTockSchedule, set_trainable
 
 # what the topology log keeps of each evolution's report
-LOG_KEYS = ("iteration", "candidates", "clusters", "tracks", "track_runs", "reassigned", "spawned", "pruned",
-            "demoted", "reanchored")
+LOG_KEYS = ("iteration", "candidates", "clusters", "tracks", "track_runs", "floating", "reassigned", "spawned",
+            "pruned", "demoted", "reanchored")
 
 
 class Cancelled(Exception):
@@ -99,14 +99,14 @@ class Trainer:
         if b is None or b.semantics is None or b.semantics.prototypes is None:
             return None
         from agg.train.data import resize_depth
-        from agg.train.topology import TopologyConfig, TopologyEvolution
+        from agg.train.topology import TopologyEvolution
         from agg.train.topology_track import tracklet_half_extents
 
         depth = resize_depth(b.dense_depth, self.data.width, self.data.height) if b.has("depth_dense") else None
         ids = [int(i) for i in b.tracklets.ids] if b.tracklets is not None else []
         dynamic = (resize_depth(b.dynamic_masks, self.data.width, self.data.height) > 0.5
                    if b.has("dynamic_masks") else None)
-        return TopologyEvolution(TopologyConfig().scaled(self.cfg.scale), b.semantics, self.data.K.numpy(),
+        return TopologyEvolution(self.cfg.evolution.scaled(self.cfg.scale), b.semantics, self.data.K.numpy(),
                                  self.data.width, self.data.height, self.metric.metres_per_unit,
                                  depth=depth, reserved_ids=ids, dynamic=dynamic,
                                  box_half=tracklet_half_extents(b.tracklets))
@@ -242,6 +242,9 @@ class Trainer:
         for name in trainable:
             if name in self.optimizers:
                 self.optimizers[name].step()
+        if "agents" in trainable and self.cfg.agent_box_margin is not None:
+            for node in g.agent_nodes():
+                node.confine(self.cfg.agent_box_margin)
         for opt in self.optimizers.values():
             opt.zero_grad(set_to_none=True)
         self.iteration += 1
