@@ -311,3 +311,55 @@ def test_region_agent_fraction_reads_the_cells_around_a_pixel_and_skips_other_ag
     exclude = np.zeros((80, 160), bool)
     exclude[16:48, 32:64] = True  # another agent's prior mask covers the car: no cell of it counts
     assert region_agent_fraction(feats, bank, 0.5, car, 12.0, 160, 80, exclude) == 0.0
+
+
+def test_height_above_road_reads_the_image_space_plane_of_a_pitched_camera():
+    """The inverse-depth plane w = a u + b v + c that a pitched and rolled camera sees of a flat road gives every
+    camera-frame point's height over that road, and the camera's own height."""
+    from agg.priors.tracklet_ground import height_above_road
+    from agg.synth.scene import rot_y
+
+    K = np.array([[200.0, 0, 80], [0, 200.0, 50], [0, 0, 1]])  # noqa: N806
+    pitch, roll = np.deg2rad(4.0), np.deg2rad(2.0)
+    rx = np.array([[1, 0, 0], [0, np.cos(pitch), -np.sin(pitch)], [0, np.sin(pitch), np.cos(pitch)]])
+    rz = np.array([[np.cos(roll), -np.sin(roll), 0], [np.sin(roll), np.cos(roll), 0], [0, 0, 1]])
+    cam_from_road = rz @ rx @ rot_y(0.3)  # road frame: y down, road surface y = 0, camera 1.6 m above it
+    up_road = np.array([0.0, -1.0, 0.0])
+
+    def to_cam(p_road):  # road-frame points [N, 3] -> camera frame (camera at road (0, -1.6, 0))
+        return (p_road - np.array([0.0, -1.6, 0.0])) @ cam_from_road.T
+
+    rng = np.random.default_rng(0)
+    road = to_cam(np.c_[rng.uniform(-8, 8, 200), np.zeros(200), rng.uniform(4, 40, 200)])
+    uv = road[:, :2] / road[:, 2:] @ K[:2, :2].T + K[:2, 2]
+    plane = np.linalg.lstsq(np.c_[uv, np.ones(len(uv))], 1.0 / road[:, 2], rcond=None)[0]  # exact: a plane
+    heights = np.array([0.0, 0.8, 5.0, -1.0])
+    pts = to_cam(np.c_[[2.0, -3.0, 0.5, 1.0], np.zeros(4), [10.0, 20.0, 30.0, 15.0]] + heights[:, None] * up_road)
+    assert height_above_road(plane, K, pts) == pytest.approx(heights, abs=1e-6)
+    assert height_above_road(plane, K, np.zeros((1, 3)))[0] == pytest.approx(1.6, abs=1e-6)
+
+
+def test_a_track_that_floats_above_the_road_is_not_spawned(tmp_path):
+    """The missed-car clip, with the road planes the evolution reads lowered by 5 m: the car's track now floats
+    5 m above the road (as a tree crown or a hillside would) and spawns no agent; the report says how high it
+    floated. Without the ground check (tolerance None) the same track spawns."""
+    path = tmp_path / "float"
+    reports = {}
+    for check in ("on", "off"):
+        bundle, graph = _clip(path / check, SceneConfig(seed=0, frames=8, width=160, height=96, pedestrians=0),
+                              NoiseConfig(missed=1), budget=6000)
+        topo = _topology(bundle, **({} if check == "on" else {"ground_tolerance_m": None}))
+        planes = topo.road_planes()
+        assert all(p is not None for p in planes)
+        lowered = []
+        for t, p in enumerate(planes):  # n . X = 1 with |n| = 1 / h; the road 5 m lower: n / (1 + 5 |n|)
+            h = 1.0 / np.linalg.norm(np.array([p[0] * bundle.intrinsics[t][0, 0], p[1] * bundle.intrinsics[t][1, 1],
+                                               p[0] * bundle.intrinsics[t][0, 2] + p[1] * bundle.intrinsics[t][1, 2]
+                                               + p[2]]))
+            lowered.append(p / (1.0 + 5.0 / h))
+        topo._planes = lowered
+        opt = _fit_background(bundle, graph, topo, steps=80)
+        reports[check] = topo.evolve(graph, opt, iteration=80)
+    assert reports["off"]["spawned"] and not reports["off"]["floating"]
+    assert not reports["on"]["spawned"]
+    assert len(reports["on"]["floating"]) == 1 and 4.0 < reports["on"]["floating"][0] < 6.0, reports["on"]["floating"]

@@ -66,6 +66,16 @@ def camera_height(plane: np.ndarray, fy: float) -> float:
     return float(1.0 / (plane[1] * fy))
 
 
+def height_above_road(plane: np.ndarray, K: np.ndarray, points: np.ndarray) -> np.ndarray:  # noqa: N803
+    """[N] signed heights over the road of camera-frame points [N, 3] (scene units; > 0 on the camera's side).
+
+    The image-space plane ``w = a u + b v + c`` of a pinhole camera K is the camera-frame plane ``n . X = 1`` with
+    ``n = (a fx, b fy, a cx + b cy + c)``; the camera itself is ``1 / |n|`` above it."""
+    a, b, c = np.asarray(plane, np.float64)
+    n = np.array([a * K[0, 0], b * K[1, 1], a * K[0, 2] + b * K[1, 2] + c])
+    return (1.0 - np.asarray(points, np.float64) @ n) / np.linalg.norm(n)
+
+
 def column_bottoms(rows: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Lower envelope of a pixel group: its columns [m] (sorted), their lowest row [m], and each pixel's column
     index [n]."""
@@ -129,5 +139,5 @@ def contact_verdicts(ucol: np.ndarray, bottom: np.ndarray, own_depth: np.ndarray
     return out
 
 
-__all__ = ["ground_planes", "road_rows", "road_inverse_depth", "camera_height", "column_bottoms", "column_medians",
-           "contact_verdicts", "FLOATING", "UNKNOWN", "OCCLUDED", "GROUNDED"]
+__all__ = ["ground_planes", "road_rows", "road_inverse_depth", "camera_height", "height_above_road", "column_bottoms",
+           "column_medians", "contact_verdicts", "FLOATING", "UNKNOWN", "OCCLUDED", "GROUNDED"]

@@ -63,6 +63,7 @@ from torch import Tensor
 
 from agg.nodes.gaussians import PARAM_NAMES, GaussianParams, append_rows, keep_rows
 from agg.nodes.rigid import RigidAgents, matrix_to_quat, quat_multiply
+from agg.priors.tracklet_ground import ground_planes
 from agg.train import topology_anchor as ta
 from agg.train import topology_demote as td
 from agg.train import topology_track as tt
@@ -103,6 +104,9 @@ class TopologyConfig:
     reanchor: bool = True  # move a spawned agent's box onto its own rendered surface (topology_anchor) at each
     # later evolution and when training ends, ...
     reanchor_min_fit: float = 0.7  # ... when the moved box holds this share of that surface (topology_anchor)
+    ground_tolerance_m: float | None = 1.0  # a spawned box's bottom must lie within this of the road plane of
+    ground_tolerance_per_m: float | None = 0.02  # the depth prior, plus this per metre of its distance (a degree of
+    # pitch: 1.7 cm/m), in the median over its valid frames; None in either: no road check (topology_spawn)
     demote: DemoteConfig = DemoteConfig()  # static, not agent-like instances become background (topology_demote)
 
     def scaled(self, factor: float) -> "TopologyConfig":
@@ -182,7 +186,18 @@ class TopologyEvolution:
         self.count: Tensor | None = None  # [T] renders accumulated per frame
         self.retired: set[int] = set(int(i) for i in reserved_ids)  # ids never to reuse
         self.spawned_ids: set[int] = set()  # ids this evolution spawned (their boxes are re-anchored)
+        self._planes: list | None = None  # the depth prior's road plane per frame (road_planes), computed once
         self.evolutions = 0
+
+    def road_planes(self) -> list | None:
+        """[T] road planes (a, b, c) of inverse depth at the training resolution (``tracklet_ground.ground_planes``
+        of the depth prior, dynamic pixels left out; None for a frame without one), or None without depth."""
+        if self.depth is None:
+            return None
+        if self._planes is None:
+            masks = self.dynamic if self.dynamic is not None else [None] * len(self.depth)
+            self._planes = ground_planes(np.asarray(self.depth), None, masks, 0.0)
+        return self._planes
 
     # ------------------------------------------------------------------ statistics
     def accumulate(self, frame: int, bg_grad_means: Tensor) -> None:
@@ -346,7 +361,7 @@ class TopologyEvolution:
         changed = pruned_nodes | demoted_nodes | ({"background"} if n_bg > n_old else set())
         report = {"iteration": iteration, "reassigned": 0, "spawned": [], "spawned_classes": [],
                   "pruned": pruned + demoted, "demoted": demoted, "candidates": 0, "clusters": 0, "tracks": 0,
-                  "track_runs": [], "reanchored": anchored,
+                  "track_runs": [], "floating": [], "reanchored": anchored,
                   "structure_changed": bool(pruned or demoted), "new_nodes": [], "rows_changed": sorted(changed),
                   "bg_src": src}
         if self.sum is None or not bool((self.count > 0).any()):
@@ -450,6 +465,8 @@ class TopologyEvolution:
             params = spawned[0]
             for extra in spawned[1:]:
                 append_rows(params, extra)
+            # a spawned agent's box is a guess (the median agent's size, placed by gradient clusters that crowd the
+            # car's leading edge) and its Gaussians come from a smeared background: its node leaves it unconfined
             if graph.rigid is None:
                 dev = bg.means.device
                 graph.rigid = RigidAgents(params, instance, wfb, valid, torch.as_tensor(ids)).to(dev)

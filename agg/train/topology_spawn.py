@@ -14,6 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 from agg.priors.kalman import smooth_sequence
+from agg.priors.tracklet_ground import height_above_road
 from agg.train import topology_track as tt
 
 
@@ -92,6 +93,10 @@ def plan_spawns(evo, graph, unmatched: list[list[dict]], means: np.ndarray, take
             state, centroids, cam_centres, half, in_view, fallback, meas_sigma=params.meas_sigma,
             accel_sigma=cfg.smooth_accel_sigma_m * u, init_vel_sigma=params.init_vel_sigma,
             min_speed=cfg.min_speed_m * u, extend=cfg.extend_frames, evidence=evidence_for(half), in_image=in_image)
+        contact = road_contact(evo, poses, valid, half, cfw)
+        if contact is not None and contact[0] > 1.0:  # its box floats above (or sinks below) the road: no agent
+            report["floating"].append(round(contact[1], 2))
+            continue
         frame_of = tt.nearest_frame(means[rows], rows, [(t, c["members"]) for t, c in clusters], poses)
         claimed[rows] = True
         plans.append({"rows": rows, "frame_of": frame_of, "poses": poses, "valid": valid, "class": cls,
@@ -99,6 +104,31 @@ def plan_spawns(evo, graph, unmatched: list[list[dict]], means: np.ndarray, take
     # the longest run of each (joined) track over the frames with statistics, longest first
     report["track_runs"] = sorted(runs, reverse=True)[:8]
     return plans
+
+
+def road_contact(evo, poses: np.ndarray, valid: np.ndarray, half: np.ndarray,
+                 camera_from_world: np.ndarray) -> tuple[float, float] | None:
+    """How far a planned box is from standing on the road: (median over its valid frames of the height of its
+    bottom over the depth prior's road plane divided by the tolerance at its distance, median height in metres).
+    Frames without a road plane or with the bottom behind the camera do not count; None when none is left (or
+    the check is off). Agents stand on the road; the built-in features also call trees and a hillside agent-like,
+    and on the dashcam sample such spawns floated 4-29 m above it (docs/TRAINING.md)."""
+    cfg, u = evo.config, evo.unit
+    planes = evo.road_planes()
+    if planes is None or cfg.ground_tolerance_m is None or cfg.ground_tolerance_per_m is None:
+        return None
+    ratios, heights = [], []
+    for t in np.flatnonzero(valid):
+        if planes[t] is None:
+            continue
+        bottom = poses[t, :3, 3] + poses[t, :3, 1] * half[1]  # the box's y axis points down
+        pc = camera_from_world[t, :3, :3] @ bottom + camera_from_world[t, :3, 3]  # [3]
+        if pc[2] <= cfg.near_m * u:
+            continue
+        h = float(height_above_road(planes[t], evo.K[min(t, len(evo.K) - 1)], pc[None])[0])
+        ratios.append(abs(h) / ((cfg.ground_tolerance_m + cfg.ground_tolerance_per_m * pc[2] / u) * u))
+        heights.append(h / u)
+    return (float(np.median(ratios)), float(np.median(heights))) if ratios else None
 
 
 def spawn_half(graph, cls: str, cfg, unit: float, box_half: dict | None = None) -> np.ndarray:
