@@ -288,8 +288,12 @@ def run_synth(args) -> None:
             print("  topology:", row["topology"]["missed_match"], flush=True)
 
 
+PROBE_PARTS = ("lr", "evolution")  # --set PART.NAME=VALUE reaches a field of TrainConfig.PART
+
+
 def probe_config(preset: str, sets: list[str]):
-    """The preset with ``NAME=VALUE`` replacements (``lr.NAME`` for a learning-rate field), and a tag naming them."""
+    """The preset with ``NAME=VALUE`` replacements (``lr.NAME`` for a learning-rate field, ``evolution.NAME`` for a
+    topology-evolution one; ``none`` switches off an optional part or setting), and a tag naming them."""
     from dataclasses import fields, replace
 
     from agg.train.config import get_preset
@@ -298,14 +302,15 @@ def probe_config(preset: str, sets: list[str]):
     tags = []
     for item in sets:
         name, _, value = item.partition("=")
-        target = cfg.lr if name.startswith("lr.") else cfg
-        field = name.removeprefix("lr.")
+        part, _, field = name.rpartition(".")
+        if part and part not in PROBE_PARTS:
+            raise SystemExit(f"--set {item!r}: no part {part!r} (one of {', '.join(PROBE_PARTS)})")
+        target = getattr(cfg, part) if part else cfg
         kinds = {f.name: type(getattr(target, f.name)) for f in fields(target)}
         if field not in kinds or not value:
             raise SystemExit(f"--set {item!r}: no option {name!r} (NAME=VALUE)")
-        off = value.lower() == "none" and getattr(target, field) is not None and kinds[field] not in (int, float, str)
-        new = replace(target, **{field: None if off else kinds[field](value)})  # tracking=none: a part off
-        cfg = replace(cfg, lr=new) if name.startswith("lr.") else new
+        new = replace(target, **{field: None if value.lower() == "none" else kinds[field](value)})  # tracking=none
+        cfg = replace(cfg, **{part: new}) if part else new
         tags.append(f"{field}{value}")
     return cfg, "_".join(tags)
 
