@@ -8,6 +8,7 @@ import torch
 
 from agg.nodes.camera import CameraNode
 from agg.nodes.gaussians import GaussianParams, append_rows, keep_rows, knn_scales
+from agg.nodes.rigid import RigidAgents
 from agg.render import rasterize
 
 
@@ -209,3 +210,40 @@ def test_spawning_two_agents_at_once_keeps_one_instance_index_per_gaussian():
     assert len(node.instance) == len(node.gaussians) == 16
     assert node.instance.tolist() == [0] * 4 + [1] * 7 + [2] * 5 and node.num_instances == 3
     assert len(g.background) == 18
+
+
+def _node(means: torch.Tensor, instance: list[int], half) -> RigidAgents:
+    n, k = len(means), max(instance) + 1
+    g = GaussianParams(means, torch.zeros(n, 3), torch.tensor([[1.0, 0, 0, 0]]).repeat(n, 1), torch.zeros(n),
+                       torch.zeros(n, 1, 3))
+    return RigidAgents(g, torch.tensor(instance), torch.eye(4).repeat(2, k, 1, 1), torch.ones(2, k, dtype=torch.bool),
+                       torch.arange(k), None if half is None else torch.tensor(half, dtype=torch.float32))
+
+
+def test_confine_clamps_means_into_the_grown_box_and_leaves_unknown_sizes_free():
+    means = torch.tensor([[3.0, -2.0, 0.1], [0.5, 0.2, -0.3], [9.0, 9.0, -9.0]])
+    node = _node(means, [0, 0, 1], [[2.0, 1.0, 1.0], [float("nan"), 1.0, 1.0]])
+    assert torch.isinf(node.half_extents[1]).all()  # a size that is not finite and positive is unknown
+    node.confine(0.25)
+    m = node.gaussians.means.detach()
+    assert torch.allclose(m[0], torch.tensor([2.5, -1.25, 0.1]))  # outside on x and y: onto the grown faces
+    assert torch.equal(m[1], means[1])  # inside: untouched
+    assert torch.equal(m[2], means[2])  # instance of unknown size: free
+    free = _node(means.clone(), [0, 0, 1], None)
+    free.confine(0.25)
+    assert torch.equal(free.gaussians.means.detach(), means)
+
+
+def test_box_sizes_follow_instances_and_checkpoints():
+    node = _node(torch.zeros(3, 3), [0, 1, 1], [[2.0, 1.0, 1.0], [1.0, 0.5, 0.5]])
+    one = GaussianParams(torch.zeros(1, 3), torch.zeros(1, 3), torch.tensor([[1.0, 0, 0, 0]]), torch.zeros(1),
+                         torch.zeros(1, 1, 3))
+    node.add_instances(one, torch.zeros(1), torch.eye(4).repeat(2, 1, 1, 1), torch.ones(2, 1, dtype=torch.bool),
+                       torch.tensor([7]), half_extents=torch.tensor([[3.0, 2.0, 1.0]]))
+    assert node.half_extents.tolist() == [[2.0, 1.0, 1.0], [1.0, 0.5, 0.5], [3.0, 2.0, 1.0]]
+    node.remove_instances(torch.tensor([True, False, True]))
+    assert node.half_extents.tolist() == [[2.0, 1.0, 1.0], [3.0, 2.0, 1.0]]
+    again = RigidAgents.from_state(node.state())
+    assert torch.equal(again.half_extents, node.half_extents)
+    old = {k: v for k, v in node.state().items() if k != "half_extents"}  # a checkpoint from before the boxes
+    assert torch.isinf(RigidAgents.from_state(old).half_extents).all()

@@ -1,4 +1,5 @@
-"""The training loop: Tick/Tock gradient isolation, checkpoint resume, cancellation, progress events."""
+"""The training loop: Tick/Tock gradient isolation, checkpoint resume, cancellation, progress events, agents kept
+in their boxes."""
 
 from __future__ import annotations
 
@@ -218,3 +219,21 @@ def test_a_background_over_its_budget_after_evolution_drops_its_least_opaque_row
     loss = tr.graph.render(0).color.mean()  # one optimiser step on the resized rows works
     loss.backward()
     tr.optimizers["static"].step()
+
+
+@pytest.mark.parametrize("margin", [0.25, None])
+def test_training_keeps_every_agent_gaussian_in_its_box(bundle, margin):
+    """A real (tiny) training run at the paper's x10 agent rates: with the margin every canonical mean ends
+    inside its tracklet box grown by it; without (None, the old behaviour) the agents' Gaussians leave it."""
+    tr = _trainer(bundle, iterations=60, agent_box_margin=margin, ablate=frozenset({"topology"}))
+    expected = {int(t): 0.5 * bundle.tracklets.box_size(k) for k, t in enumerate(bundle.tracklets.ids)}
+    for node in tr.graph.agent_nodes():
+        for j, tid in enumerate(node.track_ids.tolist()):  # sizes come from the tracklets
+            assert node.half_extents[j].tolist() == pytest.approx(expected[tid].tolist())
+    tr.run()
+    ratio = torch.cat([(n.gaussians.means.detach().abs() / n.half_extents[n.instance]).amax(-1)
+                       for n in tr.graph.agent_nodes()])  # [N] largest |coordinate| / half extent
+    if margin is None:
+        assert (ratio > 1.25 + 1e-4).any()
+    else:
+        assert ratio.max() <= 1.25 + 1e-4
