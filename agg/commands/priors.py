@@ -196,7 +196,9 @@ def format_summary(s: dict) -> str:
         lines.append(f"masks: {100 * m['coverage']:.2f} % of pixels, {m['frames_with_mask']} frames with a mask")
     if s.get("tracklets"):
         t = s["tracklets"]
-        lines.append(f"tracklets: {t['count']} ({', '.join(t['classes']) or '-'}), frames {t['frames_per_track']}")
+        filled = t.get("filled_per_track") or []
+        lines.append(f"tracklets: {t['count']} ({', '.join(t['classes']) or '-'}), frames {t['frames_per_track']}"
+                     + (f" ({filled} filled across gaps)" if any(filled) else ""))
     if s.get("semantics"):
         m = s["semantics"]
         lines.append(f"semantics: {m['backend']}, {m['channels']} channels at {m['size_hw']}, "

@@ -222,7 +222,8 @@ def run_priors(bundle: SceneBundle, config: PriorsConfig = PriorsConfig(), progr
                 bundle.write_tracklets(tr)
             np.save(bundle.path / "masks" / "instances.npy", track_result.instance_masks.astype(np.int32))
             summary.tracklets = {"count": len(tr.classes), "classes": list(tr.classes),
-                                 "frames_per_track": tr.valid.sum(1).tolist()}
+                                 "frames_per_track": tr.valid.sum(1).tolist(),
+                                 "filled_per_track": (tr.valid & (np.asarray(tr.confidence) == 0)).sum(1).tolist()}
     elif masks is None and "tracklets" in cfg.stages:
         summary.skipped["tracklets"] = "no dynamic masks"
 

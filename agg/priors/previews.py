@@ -120,10 +120,12 @@ def _masks_png(bundle: SceneBundle, idx: list[int], path: Path) -> Path:
         if tr is not None:
             valid = np.asarray(tr.valid[:, i])
             rects = project_boxes(np.asarray(tr.boxes[:, i]), bundle.camera_from_world[i], bundle.intrinsics[i])
+            filled = (np.asarray(tr.confidence[:, i]) == 0 if tr.confidence is not None
+                      else np.zeros_like(valid))  # boxes filled across a gap of the track: dashed
             for k in np.flatnonzero(valid & np.isfinite(rects).all(1)):
                 x0, y0, x1, y1 = rects[k]
                 ax.add_patch(plt.Rectangle((x0, y0), max(x1 - x0, 2), max(y1 - y0, 2), fill=False, lw=1.5,
-                                           ec=_track_colour(k)))
+                                           ec=_track_colour(k), ls="--" if filled[k] else "-"))
                 ax.text(x0, y0 - 2, f"{tr.ids[k]} {tr.classes[k]}", color=_track_colour(k), fontsize=8,
                         weight="bold")
         ax.set_xlim(-0.5, bundle.width - 0.5)
@@ -176,7 +178,9 @@ def _tracklets_png(bundle: SceneBundle, path: Path) -> Path:
         v = np.asarray(tr.valid[k])
         b = np.asarray(tr.boxes[k])[v]
         ax.plot(b[:, 0], b[:, 2], ".-", color=_track_colour(k), ms=4, label=f"track {tr.ids[k]} ({tr.classes[k]})")
-        ax2.plot(np.flatnonzero(v), np.full(v.sum(), k), "s", color=_track_colour(k), ms=4)
+        filled = v & (np.asarray(tr.confidence[k]) == 0) if tr.confidence is not None else np.zeros_like(v)
+        ax2.plot(np.flatnonzero(v & ~filled), np.full((v & ~filled).sum(), k), "s", color=_track_colour(k), ms=4)
+        ax2.plot(np.flatnonzero(filled), np.full(filled.sum(), k), "s", mfc="none", color=_track_colour(k), ms=4)
     _top_view(ax)
     ax.set_title("track centres from above", fontsize=10)
     if len(tr.ids):
@@ -185,7 +189,7 @@ def _tracklets_png(bundle: SceneBundle, path: Path) -> Path:
     ax2.set_xlim(-0.5, bundle.num_frames - 0.5)
     ax2.set_xlabel("frame")
     ax2.set_ylabel("track id")
-    ax2.set_title("frames where each track is valid", fontsize=10)
+    ax2.set_title("frames where each track is valid (hollow: filled across a gap)", fontsize=10)
     return _save(fig, path)
 
 

@@ -21,7 +21,8 @@ docs/PRIORS.md ("Agent tracklets"):
    on the Mahalanobis distance plus an image-space gate, Hungarian assignment (plus a colour cue with frames); a
    track coasts (invalid) through up to ``max_missed`` missed frames and keeps its id; a track lost for longer
    is re-joined when it reappears within ``relink_max_gap`` frames where its motion predicts; tracks with fewer than
-   ``max(min_hits, min_track_fraction T)`` detections, or smaller than an agent at their road contact, are dropped.
+   ``max(min_hits, min_track_fraction T)`` detections, or smaller than an agent at their road contact, are dropped;
+   a gap of up to ``fill_max_gap`` frames inside a track is filled from the smoothed track (valid, confidence 0).
 5. **Class** (rigid / non-rigid) from the tracked objects' image aspect ratio, **yaw** from the RTS-smoothed world
    velocity, and **amodal boxes** (``agg/priors/tracklet_boxes.py``): the visible points give the extents, a
    class-dependent size prior completes the unseen side (one size per rigid track), and the box is pushed away
@@ -110,6 +111,9 @@ class TrackConfig:
     extent_percentiles: tuple[float, float] = (5.0, 95.0)  # robust extents of the visible points
     yaw_min_speed_sigmas: float = 3.0  # velocity gives the yaw when |v_horizontal| > this * its std
     smooth_centres: bool = True  # box centres: the RTS-smoothed track of the amodal centres (False: per frame)
+    fill_max_gap: int = 8  # a gap of up to this many frames inside a track (missed detections: an occluder, a
+    #                        mask joined to the scenery) gets boxes from the smoothed track, valid with
+    #                        confidence 0; 0: gaps stay invalid
     yaw_refinements: int = 2  # re-estimate yaw from the smoothed amodal centres this many times
     max_points: int = 4000  # visible points kept per detection (deterministic stride)
 
@@ -134,8 +138,8 @@ class TrackConfig:
             bad("depth_outlier_ratio and max_column_depth_ratio must be > 1")
         if not 0 < self.gate_probability < 1:
             bad(f"gate_probability must be in (0, 1), got {self.gate_probability}")
-        if self.max_missed < 0 or self.min_hits < 1 or self.yaw_refinements < 0:
-            bad("max_missed and yaw_refinements must be >= 0 and min_hits >= 1")
+        if self.max_missed < 0 or self.min_hits < 1 or self.yaw_refinements < 0 or self.fill_max_gap < 0:
+            bad("max_missed, yaw_refinements and fill_max_gap must be >= 0 and min_hits >= 1")
         if not 0 <= self.min_track_fraction <= 1 or self.min_ground_area < 0:
             bad("min_track_fraction must be in [0, 1] and min_ground_area >= 0")
         if self.appearance_weight < 0 or not 1 <= self.appearance_bins <= 16 or not 0 <= self.appearance_memory < 1:
@@ -305,10 +309,36 @@ def track_agents(masks: np.ndarray, depth: np.ndarray, K: np.ndarray, world_from
             boxes2d[k, i] = c.bbox
             centres2d[k, i] = c.centre_px
             instance[i, c.rows, c.cols] = k + 1
+        filled = fill_gaps(boxes[k], valid[k], state[:, :3] if config.smooth_centres else None,
+                           config.fill_max_gap)
+        valid[k, filled] = True  # confidence stays 0 there: no detection, a box from the track
     tracklets = Tracklets(ids=np.arange(1, n + 1, dtype=np.int64), classes=classes, boxes=boxes, valid=valid,
                           confidence=np.clip(confidence, 0, 1),
                           labels=["pedestrian" if c == "non-rigid" else "vehicle" for c in classes])
     return TrackResult(tracklets, boxes2d, centres2d, instance, detections)
+
+
+def fill_gaps(boxes: np.ndarray, valid: np.ndarray, centres: np.ndarray | None, max_gap: int) -> np.ndarray:
+    """Fill the gaps of one track in place: boxes [T, 7] (NaN where invalid), valid [T]; centres [T, 3] the
+    smoothed track (NaN outside it) or None. A run of at most ``max_gap`` invalid frames between two valid ones
+    gets the smoothed centre (else the linear interpolation of the two boxes' centres), sizes interpolated
+    linearly (one size for a rigid track) and the yaw interpolated along the shorter way round. Returns the
+    indices [F] of the filled frames; ``valid`` is left to the caller."""
+    have = np.nonzero(valid)[0]
+    filled = []
+    for a, b in zip(have[:-1], have[1:]):
+        if not 1 < b - a <= max_gap + 1:
+            continue
+        for i in range(a + 1, b):
+            f = (i - a) / (b - a)
+            box = (1 - f) * boxes[a] + f * boxes[b]  # [7] centre and sizes
+            if centres is not None and np.isfinite(centres[i]).all():
+                box[:3] = centres[i]
+            dyaw = (boxes[b, 6] - boxes[a, 6] + np.pi) % (2 * np.pi) - np.pi
+            box[6] = boxes[a, 6] + f * dyaw
+            boxes[i] = box
+            filled.append(i)
+    return np.asarray(filled, dtype=np.int64)
 
 
 def _big_enough(hist, lifted: list[list[Candidate]], cfg: TrackConfig) -> bool:
