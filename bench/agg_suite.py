@@ -4,7 +4,8 @@
     python bench/agg_suite.py kitti [--data ../shared/data/kitti06_51] [--preset fast]
     python bench/agg_suite.py presets [--presets fast,balanced] [--seed 0]
     python bench/agg_suite.py probe --set iterations=4000 [--set lr.agent_boost=1] [--set tracking=none] [--seeds 0]
-                                    [--noise 1.0] [--agent-noise 0.5]  # no --set needed with --agent-noise
+                                    [--noise 1.0] [--agent-noise 0.5] [--oracle-agents]
+                                    # no --set needed with --agent-noise or --oracle-agents
     python bench/agg_suite.py rescore           # region / agent-pose / topology scores of runs whose scenes are on disk
     python bench/agg_suite.py report            # tables -> docs/BENCHMARKS.md section, plots -> docs/*.png
 
@@ -19,7 +20,9 @@ Variants: ``agg`` (everything on), ``baseline`` (``--ablate all``: the fixed-top
 depends on. Its records are kind "probe" and stay out of the suite's tables. ``--agent-noise`` adds noise to the
 tracklet box centres too (the suite's priors keep them exact; only the cameras are noisy, as in the paper's stress
 test), so a probe can ask what the agent rates are worth when the agent priors are wrong; with ``--agent-noise``
-no ``--set`` is needed (the preset as it is, on noisy boxes).
+no ``--set`` is needed (the preset as it is, on noisy boxes). ``--oracle-agents`` hands the run priors with every
+agent and no false one (the cameras as noisy as the suite's): what a scene graph gets when nothing is left for
+topology evolution to correct, an upper bound on what correcting the agents can add.
 """
 
 from __future__ import annotations
@@ -44,17 +47,20 @@ VARIANTS = {"agg": "", "baseline": "all", "no-tick-tock": "tick-tock", "no-seman
 
 
 def synth_bundle(work: Path, seed: int, noise: float, frames: int, width: int, height: int,
-                 agent_noise: float = 0.0) -> Path:
+                 agent_noise: float = 0.0, oracle: bool = False) -> Path:
     """The suite's bundle of ``seed`` with camera-centre noise ``noise`` (m); ``agent_noise`` (m, probes only) also
-    moves every tracklet box centre by up to that much per frame (the suite itself keeps the boxes exact)."""
+    moves every tracklet box centre by up to that much per frame (the suite itself keeps the boxes exact);
+    ``oracle`` (probes only) keeps every agent in the priors and plants no false one (the same camera noise, whose
+    draws are their own stream)."""
     from agg.synth.corrupt import NoiseConfig
     from agg.synth.scene import SceneConfig
     from agg.synth.suite import generate, write_bundle
 
-    path = work / "bundles" / (f"s{seed}_n{noise:g}" + (f"_a{agent_noise:g}" if agent_noise else ""))
+    path = work / "bundles" / (f"s{seed}_n{noise:g}" + (f"_a{agent_noise:g}" if agent_noise else "")
+                               + ("_oracle" if oracle else ""))
     if not (path / "manifest.json").is_file():
-        cfg = NoiseConfig(seed=seed, camera_translation_max=noise, agent_translation_max=agent_noise, missed=1,
-                          false=1)
+        cfg = NoiseConfig(seed=seed, camera_translation_max=noise, agent_translation_max=agent_noise,
+                          missed=0 if oracle else 1, false=0 if oracle else 1)
         gt, priors = generate(SceneConfig(seed=seed, frames=frames, width=width, height=height), cfg)
         tmp = path.with_name(f"{path.name}.tmp{os.getpid()}")  # runs started together race for one bundle:
         write_bundle(tmp, gt, priors, cfg, overwrite=True)  # each writes its own, the first rename wins
@@ -271,13 +277,13 @@ def _run(args, name: str, input_path, preset, row: dict, **kwargs) -> dict | Non
     return row
 
 
-def _synthetic_cases(args, agent_noise: float = 0.0):
+def _synthetic_cases(args, agent_noise: float = 0.0, oracle: bool = False):
     """(seed, noise, variant, bundle path) for every case of ``--seeds`` x ``--noise`` x ``--variants``."""
     for seed in [int(s) for s in args.seeds.split(",")]:
         for noise in [float(n) for n in args.noise.split(",")]:
             for variant in args.variants.split(","):
                 yield seed, noise, variant, synth_bundle(Path(args.work), seed, noise, args.frames, args.width,
-                                                         args.height, agent_noise)
+                                                         args.height, agent_noise, oracle)
 
 
 def run_synth(args) -> None:
@@ -316,15 +322,15 @@ def probe_config(preset: str, sets: list[str]):
 
 
 def run_probe(args) -> None:
-    a = args.agent_noise
-    if not args.set and not a:
-        raise SystemExit("probe needs at least one --set NAME=VALUE, or --agent-noise")
+    a, oracle = args.agent_noise, args.oracle_agents
+    if not args.set and not a and not oracle:
+        raise SystemExit("probe needs at least one --set NAME=VALUE, --agent-noise or --oracle-agents")
     cfg, tag = probe_config(args.preset, args.set)
-    for seed, noise, variant, bundle in _synthetic_cases(args, a):
-        _run(args, f"probe_s{seed}_n{noise:g}" + (f"_a{a:g}" if a else "") + f"_{variant}_{args.preset}"
-             + (f"_{tag}" if tag else ""),
+    for seed, noise, variant, bundle in _synthetic_cases(args, a, oracle):
+        _run(args, f"probe_s{seed}_n{noise:g}" + (f"_a{a:g}" if a else "") + ("_oracle" if oracle else "")
+             + f"_{variant}_{args.preset}" + (f"_{tag}" if tag else ""),
              bundle, cfg, {"kind": "probe", "seed": seed, "noise": noise, "variant": variant, "set": args.set,
-                           "agent_noise": a}, ablate=VARIANTS[variant])
+                           "agent_noise": a, "oracle_agents": oracle}, ablate=VARIANTS[variant])
 
 
 def run_rescore(args) -> None:
@@ -340,7 +346,7 @@ def run_rescore(args) -> None:
                 continue
             row["regions"] = region_scores(scene)
             bundle = synth_bundle(work, row["seed"], row["noise"], args.frames, args.width, args.height,
-                                  row.get("agent_noise", 0.0))
+                                  row.get("agent_noise", 0.0), row.get("oracle_agents", False))
             graph = load_graph(scene)
             row["agent_poses"] = agent_pose_scores(graph, bundle)
             if row.get("topology") is not None:
@@ -380,6 +386,8 @@ def main(argv=None) -> int:
     p.add_argument("--set", action="append", default=[], help="probe: NAME=VALUE (lr.NAME for a learning rate)")
     p.add_argument("--agent-noise", type=float, default=0.0,
                    help="probe: also move each tracklet box centre by up to this many metres per frame")
+    p.add_argument("--oracle-agents", action="store_true",
+                   help="probe: priors with every agent and no false one (the same camera noise)")
     p.add_argument("--force", action="store_true")
     args = p.parse_args(argv)
     if args.agent_noise and args.what != "probe":

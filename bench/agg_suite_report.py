@@ -154,7 +154,7 @@ def _machines(runs: list[dict]) -> str:
 
 def probe_table(runs: list[dict]) -> list[str]:
     """Probe runs (a preset with options replaced) beside the suite's run of the same seed, noise and variant."""
-    probes = [r for r in runs if r["kind"] == "probe"]
+    probes = [r for r in runs if r["kind"] == "probe" and not r.get("oracle_agents")]
     if not probes:
         return []
     plain = {(r["seed"], r["noise"], r["variant"]): r for r in runs if r["kind"] == "synth"}
@@ -224,6 +224,46 @@ def noisy_box_table(runs: list[dict]) -> list[str]:
         means = [f"{_mean([d[0] for d in deltas[v]]):+.2f} / {_mean([d[1] for d in deltas[v]]):+.2f} "
                  f"({len(deltas[v])} seeds)" if deltas[v] else "–" for v in ("baseline", "no-tick-tock")]
         out += [f"| mean | | | {means[0]} | | {means[1]} | | | |", ""]
+    return out
+
+
+def oracle_table(runs: list[dict]) -> list[str]:
+    """What exact agent priors give (probes with ``--oracle-agents``: every agent in the priors, no false one, the
+    suite's camera noise) beside the suite's runs of the same seed and noise: how much of the full-image PSNR is
+    there to win by correcting the agents, measured by training rather than by rescoring pixels."""
+    oracle = {(r["seed"], r["noise"], r["variant"]): r for r in runs
+              if r["kind"] == "probe" and r.get("oracle_agents") and _default_options(r)}
+    plain = {(r["seed"], r["noise"], r["variant"]): r for r in runs if r["kind"] == "synth"}
+    cases = sorted({(s, n) for s, n, v in oracle if v == "baseline" and (s, n, "baseline") in plain})
+    if not cases:
+        return []
+
+    def cell(r):
+        return f"{_fmt(r['metrics']['psnr'])} / {_fmt(r['metrics']['psnr_agents'])}" if r else "–"
+
+    out = ["### Exact agent priors: how much correcting the agents can add", "",
+           "`probe --oracle-agents`: the same cameras (same noise draws) with every agent in the priors and no false "
+           "one, so there is nothing for topology evolution to correct. Full image / agent PSNR in dB; *oracle "
+           "gain* = oracle baseline − baseline, the full-image PSNR that perfect agent priors are worth to the "
+           "fixed-topology baseline; AGG − baseline is the suite's Δ. Camera error: Sim(3)-aligned mean over the "
+           "training frames.", "",
+           "| Noise | Seed | Baseline | Oracle baseline | Oracle gain | AGG | AGG − baseline | Oracle AGG | "
+           "Camera error baseline / oracle baseline / AGG (m) |", "|---|---|---|---|---|---|---|---|---|"]
+    gains, deltas = [], []
+    for s, n in cases:
+        b, ob, ag, oa = (plain[(s, n, "baseline")], oracle[(s, n, "baseline")], plain.get((s, n, "agg")),
+                         oracle.get((s, n, "agg")))
+        gain = ob["metrics"]["psnr"] - b["metrics"]["psnr"]
+        gains.append(gain)
+        delta = ag["metrics"]["psnr"] - b["metrics"]["psnr"] if ag else None
+        deltas.append(delta)
+        cams = " / ".join(_fmt((r or {}).get("cameras", {}).get("refined", {}).get("sim3_mean_m"), 3)
+                          for r in (b, ob, ag))
+        out.append(f"| {n:g} m | {s} | {cell(b)} | {cell(ob)} | {gain:+.2f} | {cell(ag)} | "
+                   f"{'–' if delta is None else f'{delta:+.2f}'} | {cell(oa)} | {cams} |")
+    d = _mean(deltas)
+    out += [f"| | mean | | | {_mean(gains):+.2f} | | {'–' if d is None else f'{d:+.2f}'} | | |", "",
+            _machines([r for key in cases for r in (plain[(*key, "baseline")], oracle[(*key, "baseline")])]), ""]
     return out
 
 
@@ -303,7 +343,8 @@ def write_report(work: Path, docs: Path, machine: str) -> None:
     lines = [START, "## AGG suite (`bench/agg_suite.py`)", "",
              f"Written {datetime.date.today().isoformat()} on the CI-class VM (2 vCPU, {machine}, torch 2.13 CPU, "
              "one OpenMP thread per run, two runs at a time).", ""]
-    lines += synth_tables(runs) + [""] + probe_table(runs) + noisy_box_table(runs) + other_tables(runs)
+    lines += synth_tables(runs) + [""] + probe_table(runs) + oracle_table(runs) + noisy_box_table(runs)
+    lines += other_tables(runs)
     lines += [f"![{m}]({m})" for m in made] + [END]
     path = docs / "BENCHMARKS.md"
     text = path.read_text() if path.is_file() else "# Benchmarks\n"
