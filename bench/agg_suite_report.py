@@ -117,8 +117,10 @@ def synth_tables(runs: list[dict]) -> list[str]:
         out += ["", "**Where the error lies** (runs that record it): the PSNR of the pixels outside the agent masks "
                 "(one MSE pooled over the test frames; *PSNR* is the per-frame mean, as above), the share of the test "
                 "pixels that are agent pixels and the share of the squared error they carry. *Perfect agents*: "
-                "the most that rendering the agent pixels without error could add to the pooled PSNR, "
-                "−10·log10(1 − agent share of error).", "",
+                "what rendering the agent pixels without error, the rest left as it is, would add to the pooled "
+                "PSNR, −10·log10(1 − agent share of error). It is no bound on what correcting the agents can "
+                "add: wrong agent priors also spoil the background and the cameras (*Exact agent priors* below).",
+                "",
                 "| Noise | Seed | Variant | PSNR | Agent PSNR | Background PSNR | Agent pixels | Agent share of "
                 "error | Perfect agents (dB) |", "|---|---|---|---|---|---|---|---|---|"]
         for r in sorted(regions, key=lambda r: (r["noise"], r["seed"], r["variant"])):
