@@ -174,7 +174,7 @@ class Detection:
 class TrackResult:
     tracklets: Tracklets  # ids 1..K (= instance mask values), classes, boxes [K, T, 7], valid, confidence, labels
     boxes2d: np.ndarray  # [K, T, 4] float32 x0, y0, x1, y1 (inclusive-exclusive), NaN where invalid or filled
-    centres2d: np.ndarray  # [K, T, 2] float32 pixel centroid (u, v) of the track's pixels, NaN where invalid
+    centres2d: np.ndarray  # [K, T, 2] float32 pixel centroid (u, v) of the track's pixels, NaN where invalid or filled
     instance_masks: np.ndarray  # [T, H, W] int32: 0 = none, k + 1 = pixels of track k in that frame
     detections: list[list[Detection]]  # per frame, every detection (tracked or not)
 
