@@ -22,7 +22,7 @@ tracklet box centres too (the suite's priors keep them exact; only the cameras a
 test), so a probe can ask what the agent rates are worth when the agent priors are wrong; with ``--agent-noise``
 no ``--set`` is needed (the preset as it is, on noisy boxes). ``--oracle-agents`` hands the run priors with every
 agent and no false one (the cameras as noisy as the suite's): what a scene graph gets when nothing is left for
-topology evolution to correct, an upper bound on what correcting the agents can add.
+topology evolution to correct: a measure of what correcting the agents can add.
 """
 
 from __future__ import annotations

@@ -20,6 +20,11 @@ def _fmt(v, nd=2) -> str:
     return "–" if v is None or (isinstance(v, float) and not np.isfinite(v)) else f"{v:.{nd}f}"
 
 
+def _psnr_pair(r: dict | None) -> str:
+    """"full image / agents" PSNR of a run, "–" without one."""
+    return f"{_fmt(r['metrics']['psnr'])} / {_fmt(r['metrics']['psnr_agents'])}" if r else "–"
+
+
 def _mean(vals):
     vals = [v for v in vals if v is not None]
     return float(np.mean(vals)) if vals else None
@@ -166,7 +171,7 @@ def probe_table(runs: list[dict]) -> list[str]:
     for r in sorted(probes, key=lambda r: (r["seed"], r["noise"], " ".join(r["set"]), r["variant"])):
         a = r.get("agent_noise", 0.0)
         m, ref = r["metrics"], None if a else plain.get((r["seed"], r["noise"], r["variant"]))
-        base = f"{_fmt(ref['metrics']['psnr'])} / {_fmt(ref['metrics']['psnr_agents'])}" if ref else "–"
+        base = _psnr_pair(ref)
         opts = ", ".join(r["set"] + ([f"agent noise {a:g} m"] if a else []))
         out.append(f"| {r['seed']} | {r['noise']:g} m | {r['variant']} | {opts} | {_fmt(m['psnr'])} | "
                    f"{_fmt(m['psnr_agents'])} | {m['n_gaussians']} | {r['wall_s']:.0f} | {base} |")
@@ -214,12 +219,12 @@ def noisy_box_table(runs: list[dict]) -> list[str]:
                 d = (ag["metrics"]["psnr"] - r["metrics"]["psnr"],
                      ag["metrics"]["psnr_agents"] - r["metrics"]["psnr_agents"])
                 deltas[v].append(d)
-                cols += [f"{_fmt(r['metrics']['psnr'])} / {_fmt(r['metrics']['psnr_agents'])}",
+                cols += [_psnr_pair(r),
                          f"{d[0]:+.2f} / {d[1]:+.2f}"]
                 errs.append(r.get("agent_poses", {}).get("translation_m"))
             t = ag["topology"]
             m = t.get("missed_match") or {}
-            out.append(f"| {s} | {_fmt(ag['metrics']['psnr'])} / {_fmt(ag['metrics']['psnr_agents'])} | "
+            out.append(f"| {s} | {_psnr_pair(ag)} | "
                        + " | ".join(cols) + f" | {_fmt(m.get('within_1m_of_visible'))} | "
                        f"{'yes' if t['false_pruned'] == t['false_ids'] else 'no'} | "
                        + " / ".join(_fmt(e, 3) for e in errs) + " |")
@@ -240,17 +245,15 @@ def oracle_table(runs: list[dict]) -> list[str]:
     if not cases:
         return []
 
-    def cell(r):
-        return f"{_fmt(r['metrics']['psnr'])} / {_fmt(r['metrics']['psnr_agents'])}" if r else "–"
-
     out = ["### Exact agent priors: how much correcting the agents can add", "",
            "`probe --oracle-agents`: the same cameras (same noise draws) with every agent in the priors and no false "
            "one, so there is nothing for topology evolution to correct. Full image / agent PSNR in dB; *oracle "
            "gain* = oracle baseline − baseline, the full-image PSNR that perfect agent priors are worth to the "
            "fixed-topology baseline; AGG − baseline is the suite's Δ, and *recovered* its share of the oracle gain. "
            "Camera error: Sim(3)-aligned mean over the training frames.", "",
-           "| Noise | Seed | Baseline | Oracle baseline | Oracle gain | AGG | AGG − baseline | Recovered | Oracle AGG | "
-           "Camera error baseline / oracle baseline / AGG (m) |", "|---|---|---|---|---|---|---|---|---|---|"]
+           "| Noise | Seed | Baseline | Oracle baseline | Oracle gain | AGG | AGG − baseline | Recovered | "
+           "Oracle AGG | Camera error baseline / oracle baseline / AGG (m) |",
+           "|---|---|---|---|---|---|---|---|---|---|"]
     gains, deltas = [], []
     for s, n in cases:
         b, ob, ag, oa = (plain[(s, n, "baseline")], oracle[(s, n, "baseline")], plain.get((s, n, "agg")),
@@ -262,8 +265,8 @@ def oracle_table(runs: list[dict]) -> list[str]:
         cams = " / ".join(_fmt((r or {}).get("cameras", {}).get("refined", {}).get("sim3_mean_m"), 3)
                           for r in (b, ob, ag))
         share = "–" if delta is None or gain <= 0 else f"{100 * delta / gain:.0f} %"
-        out.append(f"| {n:g} m | {s} | {cell(b)} | {cell(ob)} | {gain:+.2f} | {cell(ag)} | "
-                   f"{'–' if delta is None else f'{delta:+.2f}'} | {share} | {cell(oa)} | {cams} |")
+        out.append(f"| {n:g} m | {s} | {_psnr_pair(b)} | {_psnr_pair(ob)} | {gain:+.2f} | {_psnr_pair(ag)} | "
+                   f"{'–' if delta is None else f'{delta:+.2f}'} | {share} | {_psnr_pair(oa)} | {cams} |")
     d = _mean(deltas)
     out += [f"| | mean | | | {_mean(gains):+.2f} | | {'–' if d is None else f'{d:+.2f}'} | | | |", "",
             _machines([r for key in cases for r in (plain[(*key, "baseline")], oracle[(*key, "baseline")],

@@ -212,7 +212,7 @@ def run_priors(bundle: SceneBundle, config: PriorsConfig = PriorsConfig(), progr
     # ---------------------------------------------------------------- 4. tracklets
     track_result = None
     if masks is not None and _wants(bundle, cfg, "tracklets", "tracklets", summary):
-        from agg.priors.tracklets import TrackConfig, track_agents
+        from agg.priors.tracklets import TrackConfig, filled_entries, track_agents
 
         with _Stage(summary, "tracklets", t, progress) as st:
             track_result = track_agents(masks, depth, K, world_from_camera, TrackConfig(), frames=frames,
@@ -223,7 +223,7 @@ def run_priors(bundle: SceneBundle, config: PriorsConfig = PriorsConfig(), progr
             np.save(bundle.path / "masks" / "instances.npy", track_result.instance_masks.astype(np.int32))
             summary.tracklets = {"count": len(tr.classes), "classes": list(tr.classes),
                                  "frames_per_track": tr.valid.sum(1).tolist(),
-                                 "filled_per_track": (tr.valid & (np.asarray(tr.confidence) == 0)).sum(1).tolist()}
+                                 "filled_per_track": filled_entries(tr).sum(1).tolist()}
     elif masks is None and "tracklets" in cfg.stages:
         summary.skipped["tracklets"] = "no dynamic masks"
 

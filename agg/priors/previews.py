@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from agg.io.bundle import SceneBundle
+from agg.priors.tracklets import filled_entries
 
 _SOURCE_COLOURS = {"sfm": "tab:blue", "given": "tab:blue", "gt": "tab:blue", "interpolated": "tab:orange",
                    "vo": "tab:purple"}
@@ -112,6 +113,7 @@ def _masks_png(bundle: SceneBundle, idx: list[int], path: Path) -> Path:
     plt, fig, axes = _grid(len(idx), bundle.width / bundle.height)
     masks = bundle.dynamic_masks
     tr = bundle.tracklets if bundle.has("poses") else None
+    filled = filled_entries(tr) if tr is not None else None  # [K, T] boxes filled across a gap: dashed
     for ax, i in zip(axes, idx):
         img = bundle.frame(i).copy()  # [H, W, 3]
         m = np.asarray(masks[i]) > 0
@@ -120,12 +122,10 @@ def _masks_png(bundle: SceneBundle, idx: list[int], path: Path) -> Path:
         if tr is not None:
             valid = np.asarray(tr.valid[:, i])
             rects = project_boxes(np.asarray(tr.boxes[:, i]), bundle.camera_from_world[i], bundle.intrinsics[i])
-            filled = (np.asarray(tr.confidence[:, i]) == 0 if tr.confidence is not None
-                      else np.zeros_like(valid))  # boxes filled across a gap of the track: dashed
             for k in np.flatnonzero(valid & np.isfinite(rects).all(1)):
                 x0, y0, x1, y1 = rects[k]
                 ax.add_patch(plt.Rectangle((x0, y0), max(x1 - x0, 2), max(y1 - y0, 2), fill=False, lw=1.5,
-                                           ec=_track_colour(k), ls="--" if filled[k] else "-"))
+                                           ec=_track_colour(k), ls="--" if filled[k, i] else "-"))
                 ax.text(x0, y0 - 2, f"{tr.ids[k]} {tr.classes[k]}", color=_track_colour(k), fontsize=8,
                         weight="bold")
         ax.set_xlim(-0.5, bundle.width - 0.5)
@@ -174,11 +174,12 @@ def _tracklets_png(bundle: SceneBundle, path: Path) -> Path:
     c = bundle.world_from_camera[:, :3, 3]
     fig, (ax, ax2) = plt.subplots(1, 2, figsize=(12, 5), gridspec_kw={"width_ratios": [1, 1.4]})
     ax.plot(c[:, 0], c[:, 2], "-", color="0.5", lw=2, label="camera")
+    gap_filled = filled_entries(tr)  # [K, T]
     for k in range(len(tr.ids)):
         v = np.asarray(tr.valid[k])
         b = np.asarray(tr.boxes[k])[v]
         ax.plot(b[:, 0], b[:, 2], ".-", color=_track_colour(k), ms=4, label=f"track {tr.ids[k]} ({tr.classes[k]})")
-        filled = v & (np.asarray(tr.confidence[k]) == 0) if tr.confidence is not None else np.zeros_like(v)
+        filled = gap_filled[k]
         ax2.plot(np.flatnonzero(v & ~filled), np.full((v & ~filled).sum(), k), "s", color=_track_colour(k), ms=4)
         ax2.plot(np.flatnonzero(filled), np.full(filled.sum(), k), "s", mfc="none", color=_track_colour(k), ms=4)
     _top_view(ax)

@@ -318,6 +318,15 @@ def track_agents(masks: np.ndarray, depth: np.ndarray, K: np.ndarray, world_from
     return TrackResult(tracklets, boxes2d, centres2d, instance, detections)
 
 
+def filled_entries(tracklets: Tracklets) -> np.ndarray:
+    """[K, T] bool: the entries ``fill_gaps`` made (valid with confidence 0: a box from the track, no detection);
+    all False without confidences."""
+    valid = np.asarray(tracklets.valid, bool)
+    if tracklets.confidence is None:
+        return np.zeros_like(valid)
+    return valid & (np.asarray(tracklets.confidence) == 0)
+
+
 def fill_gaps(boxes: np.ndarray, valid: np.ndarray, centres: np.ndarray | None, max_gap: int) -> np.ndarray:
     """Fill the gaps of one track in place: boxes [T, 7] (NaN where invalid), valid [T]; centres [T, 3] the
     smoothed track (NaN outside it) or None. A run of at most ``max_gap`` invalid frames between two valid ones
