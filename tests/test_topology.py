@@ -15,9 +15,7 @@ from agg.priors.metric_scale import estimate_metric_scale
 from agg.synth.corrupt import NoiseConfig
 from agg.synth.scene import SceneConfig
 from agg.synth.suite import generate, load_gt_extras, write_bundle
-from agg.priors.tracklet_ground import height_above_road
-from agg.train.topology import TopologyConfig, TopologyEvolution, _box_poses
-from agg.train.topology_carve import carve_rows
+from agg.train.topology import TopologyConfig, TopologyEvolution
 from agg.train.topology_track import visible_surface_offset
 
 LRS = {"means": 1e-3, "log_scales": 5e-3, "quats": 1e-3, "opacity_logits": 5e-2, "sh": 5e-3}
@@ -66,7 +64,6 @@ def test_a_missed_moving_car_is_spawned_on_its_trajectory(missed):
     missed_id = extras["index"]["missed_ids"][0]
     gt_poses = extras["world_from_agent"][missed_id - 1]  # [T, 4, 4]; GT ids are 1..K
     n_bg, n_agents = len(graph.background), graph.rigid.num_instances
-    before = graph.background.means.detach().numpy().astype(np.float64)  # [N, 3]
     report = topo.evolve(graph, opt, iteration=80)
     assert len(report["spawned"]) == 1 and report["structure_changed"] and report["candidates"] > 100
     new_id = report["spawned"][0]
@@ -83,32 +80,9 @@ def test_a_missed_moving_car_is_spawned_on_its_trajectory(missed):
     assert (dist < 1.0).mean() >= 0.8 and np.median(dist) < 1.0, dist
     assert yaw_err.max() < 15.0, yaw_err
     assert valid.mean() >= 0.8
-    # its Gaussians left the background (the report's keep mask says which rows), the optimiser follows, and so
-    # did the rest of the car's trail in the box it sweeps (topology_carve); the road under it stays
+    # its Gaussians left the background (the report's keep mask says which rows), the optimiser follows
     moved = int((graph.rigid.instance == j).sum())
-    print("moved to the agent:", moved, "carved:", report["carved"])
-    assert moved >= 100 and report["carved"] > 0
-    assert len(graph.background) == n_bg - moved - report["carved"] == len(report["bg_src"])
-    box = (_box_poses(graph.rigid)[:, j], valid, topo.box_half[new_id])
-    cfw = graph.camera.camera_from_world().detach().numpy().astype(np.float64)
-    planes = topo.road_planes()
-
-    def free(means: np.ndarray) -> np.ndarray:
-        return carve_rows(means, *box, cfw, topo.K, planes, topo.config.carve_shrink, topo.config.carve_clearance_m)
-
-    def road(means: np.ndarray) -> int:  # means within 15 cm of the road plane under the box (its footprint)
-        hit = np.zeros(len(means), bool)
-        for t in np.flatnonzero(valid):
-            local = (means - box[0][t, :3, 3]) @ box[0][t, :3, :3]
-            pc = means @ cfw[t, :3, :3].T + cfw[t, :3, 3]
-            hit |= ((np.abs(local[:, [0, 2]]) <= 0.8 * box[2][[0, 2]]).all(1)
-                    & (np.abs(height_above_road(planes[t], topo.K[0], pc)) < 0.15))
-        return int(hit.sum())
-
-    after = graph.background.means.detach().numpy().astype(np.float64)
-    # the swept box held 319 rows: 256 went to the agent as cluster members, the other 63 were carved
-    assert free(before).sum() > report["carved"] and not free(after).any()
-    assert road(after) >= 0.85 * road(before), (road(after), road(before))
+    assert moved >= 100 and len(graph.background) == n_bg - moved == len(report["bg_src"])
     assert opt.state[graph.background.means]["exp_avg"].shape[0] == len(graph.background)
     assert topo.sum is None  # statistics reset after an evolution
     # the new agent renders where the car is: its Gaussians cover the missed car's pixels in a middle frame

@@ -44,10 +44,8 @@ pose prior is the track, its centroids moved from the visible surface to the box
 (``topology_track.spawn_trajectory``: a box of the graph's median agent size or ``rigid_size_m``, yaw from the
 ground velocity, its surface weighted by solid angle, and Gauss-Newton passes that leave out the part of the box
 outside the image, for a car cut off by the image edge); its track id is one more than every id seen so far
-(never reused). The background Gaussians left in the box it sweeps over its valid frames (the rest of the missed
-car's trail) are removed, then and at each later evolution (``topology_carve``). At each later evolution (and
-when training ends) a spawned agent's box is re-anchored on its own rendered surface (``topology_anchor``): the
-gradient clusters crowd a moving car's leading edge, so its box leads.
+(never reused). At each later evolution (and when training ends) a spawned agent's box is re-anchored on its own
+rendered surface (``topology_anchor``): the gradient clusters crowd a moving car's leading edge, so its box leads.
 **Pruning**: an instance whose ``prune_quantile`` opacity quantile is below ``prune_opacity`` or that has fewer
 than ``min_agent_gaussians`` Gaussians is removed (before matching, so dead agents absorb nothing). A false agent
 that does not die out (it keeps rendering the road it was initialised on) is **demoted** when it is static and not
@@ -67,7 +65,6 @@ from agg.nodes.gaussians import PARAM_NAMES, GaussianParams, append_rows, keep_r
 from agg.nodes.rigid import RigidAgents, matrix_to_quat, quat_multiply
 from agg.priors.tracklet_ground import ground_planes
 from agg.train import topology_anchor as ta
-from agg.train import topology_carve as tc
 from agg.train import topology_demote as td
 from agg.train import topology_track as tt
 from agg.train.topology_demote import DemoteConfig
@@ -111,9 +108,6 @@ class TopologyConfig:
     ground_tolerance_per_m: float | None = 0.02  # the depth prior, plus this per metre of its distance (a degree of
     # pitch: 1.7 cm/m), in the median over its valid frames; None in either: no road check (topology_spawn)
     demote: DemoteConfig = DemoteConfig()  # static, not agent-like instances become background (topology_demote)
-    carve: bool = True  # remove the background Gaussians in a spawned agent's swept box (topology_carve) ...
-    carve_shrink: float = 0.8  # ... shrunk to this share of its length and width ...
-    carve_clearance_m: float = 0.3  # ... above this height over its bottom and over the road plane
 
     def scaled(self, factor: float) -> "TopologyConfig":
         """The same settings with the iteration milestones scaled (a preset with fewer iterations)."""
@@ -367,7 +361,7 @@ class TopologyEvolution:
         changed = pruned_nodes | demoted_nodes | ({"background"} if n_bg > n_old else set())
         report = {"iteration": iteration, "reassigned": 0, "spawned": [], "spawned_classes": [],
                   "pruned": pruned + demoted, "demoted": demoted, "candidates": 0, "clusters": 0, "tracks": 0,
-                  "track_runs": [], "floating": [], "reanchored": anchored, "carved": 0,
+                  "track_runs": [], "floating": [], "reanchored": anchored,
                   "structure_changed": bool(pruned or demoted), "new_nodes": [], "rows_changed": sorted(changed),
                   "bg_src": src}
         if self.sum is None or not bool((self.count > 0).any()):
@@ -451,9 +445,6 @@ class TopologyEvolution:
             poses = plan["poses"][plan["frame_of"]]
             spawned.append(_to_canonical(_rows(bg, plan["rows"]), poses))
             moved[plan["rows"]] = True
-        carved = self._free_space(graph, spawn) & ~moved
-        report["carved"] = int(carved.sum())
-        moved |= carved
         keep = torch.as_tensor(~moved, device=bg.means.device)
         if moved.any():
             keep_rows(bg, keep, optimizer)
@@ -494,31 +485,6 @@ class TopologyEvolution:
         report["rows_changed"] = sorted(rows_changed | set(report["rows_changed"]))
         report["bg_src"] = report["bg_src"][keep]
         return self._finish(report)
-
-    def _free_space(self, graph, spawn: list[dict]) -> np.ndarray:
-        """[N_bg] background rows in the free space (``topology_carve``) of the agents spawned now (their plans)
-        and before (their refined, re-anchored boxes)."""
-        cfg, bg = self.config, graph.background
-        out = np.zeros(len(bg), bool)
-        if not cfg.carve:
-            return out
-        boxes = [(p["poses"], p["valid"], p["half"]) for p in spawn if p.get("half") is not None]
-        node = graph.rigid
-        ids = [] if node is None else [(j, int(t)) for j, t in enumerate(node.track_ids.tolist())
-                                       if int(t) in self.spawned_ids and int(t) in self.box_half]
-        if ids:
-            poses, valid = _box_poses(node), node.valid.cpu().numpy()
-            boxes += [(poses[:, j], valid[:, j], self.box_half[tid]) for j, tid in ids]
-        if not boxes:
-            return out
-        with torch.no_grad():
-            means = bg.means.detach().cpu().numpy().astype(np.float64)  # [N, 3]
-            cfw = graph.camera.camera_from_world().detach().cpu().numpy().astype(np.float64)  # [T, 4, 4]
-        planes = self.road_planes()
-        for poses, valid, half in boxes:
-            out |= tc.carve_rows(means, poses, valid, half, cfw, self.K, planes, cfg.carve_shrink,
-                                 cfg.carve_clearance_m * self.unit)
-        return out
 
     def _finish(self, report: dict) -> dict:
         if self.config.reset_after_evolve:

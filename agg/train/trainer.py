@@ -33,7 +33,7 @@ from agg.train.tick_tock import GROUPS, TickTockSchedule, set_trainable
 
 # what the topology log keeps of each evolution's report
 LOG_KEYS = ("iteration", "candidates", "clusters", "tracks", "track_runs", "floating", "reassigned", "spawned",
-            "carved", "pruned", "demoted", "reanchored")
+            "pruned", "demoted", "reanchored")
 
 
 class Cancelled(Exception):
