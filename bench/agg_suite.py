@@ -4,6 +4,7 @@
     python bench/agg_suite.py kitti [--data ../shared/data/kitti06_51] [--preset fast]
     python bench/agg_suite.py presets [--presets fast,balanced] [--seed 0]
     python bench/agg_suite.py probe --set iterations=4000 [--set lr.agent_boost=1] [--set tracking=none] [--seeds 0]
+                                    [--set evolution.carve=false] [--set tracking.levels=4,2,1]
                                     [--noise 1.0] [--agent-noise 0.5] [--oracle-agents]
                                     # no --set needed with --agent-noise or --oracle-agents
     python bench/agg_suite.py rescore           # region / agent-pose / topology scores of runs whose scenes are on disk
@@ -294,12 +295,26 @@ def run_synth(args) -> None:
             print("  topology:", row["topology"]["missed_match"], flush=True)
 
 
-PROBE_PARTS = ("lr", "evolution")  # --set PART.NAME=VALUE reaches a field of TrainConfig.PART
+PROBE_PARTS = ("lr", "evolution", "tracking")  # --set PART.NAME=VALUE reaches a field of TrainConfig.PART
+
+
+def _probe_value(kind: type, value: str):
+    """A --set VALUE read as ``kind``: ``none`` is None, a bool is true/false, a tuple is comma-separated ints."""
+    if value.lower() == "none":
+        return None
+    if kind is bool:
+        if value.lower() not in ("true", "false"):
+            raise SystemExit(f"--set: {value!r} is not true or false")
+        return value.lower() == "true"
+    if kind is tuple:
+        return tuple(int(v) for v in value.split(","))
+    return kind(value)
 
 
 def probe_config(preset: str, sets: list[str]):
     """The preset with ``NAME=VALUE`` replacements (``lr.NAME`` for a learning-rate field, ``evolution.NAME`` for a
-    topology-evolution one; ``none`` switches off an optional part or setting), and a tag naming them."""
+    topology-evolution one, ``tracking.NAME`` for camera tracking; ``none`` switches off an optional part or
+    setting, ``true`` / ``false`` set a switch, ``4,2,1`` a tuple), and a tag naming them."""
     from dataclasses import fields, replace
 
     from agg.train.config import get_preset
@@ -315,9 +330,9 @@ def probe_config(preset: str, sets: list[str]):
         kinds = {f.name: type(getattr(target, f.name)) for f in fields(target)}
         if field not in kinds or not value:
             raise SystemExit(f"--set {item!r}: no option {name!r} (NAME=VALUE)")
-        new = replace(target, **{field: None if value.lower() == "none" else kinds[field](value)})  # tracking=none
+        new = replace(target, **{field: _probe_value(kinds[field], value)})  # tracking=none
         cfg = replace(cfg, **{part: new}) if part else new
-        tags.append(f"{field}{value}")
+        tags.append(f"{field}{value.replace(',', '-')}")
     return cfg, "_".join(tags)
 
 
