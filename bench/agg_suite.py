@@ -4,7 +4,7 @@
     python bench/agg_suite.py kitti [--data ../shared/data/kitti06_51] [--preset fast]
     python bench/agg_suite.py presets [--presets fast,balanced] [--seed 0]
     python bench/agg_suite.py probe --set iterations=4000 [--set lr.agent_boost=1] [--set tracking=none] [--seeds 0]
-                                    [--set evolution.carve=false] [--set tracking.levels=4,2,1]
+                                    [--set evolution.every=5000] [--set tracking.levels=4,2,1]
                                     [--noise 1.0] [--agent-noise 0.5] [--oracle-agents]
                                     # no --set needed with --agent-noise or --oracle-agents
     python bench/agg_suite.py rescore           # region / agent-pose / topology scores of runs whose scenes are on disk
