@@ -327,6 +327,8 @@ def probe_config(preset: str, sets: list[str]):
         if part and part not in PROBE_PARTS:
             raise SystemExit(f"--set {item!r}: no part {part!r} (one of {', '.join(PROBE_PARTS)})")
         target = getattr(cfg, part) if part else cfg
+        if target is None:
+            raise SystemExit(f"--set {item!r}: {part} is off in this preset or an earlier --set")
         kinds = {f.name: type(getattr(target, f.name)) for f in fields(target)}
         if field not in kinds or not value:
             raise SystemExit(f"--set {item!r}: no option {name!r} (NAME=VALUE)")
