@@ -264,8 +264,10 @@ def test_statistics_follow_row_changes_and_checkpoints(missed, tmp_path):
     other.load_state_dict(torch.load(tmp_path / "topo.pt"))
     assert np.allclose(other.mean_gradients()[0], topo.mean_gradients()[0]) and other.retired == topo.retired
     cfg = TopologyConfig().scaled(0.1)
-    assert (cfg.every, cfg.stop) == (1000, 2000)
-    assert [i for i in range(0, 2500, 500) if cfg.due(i)] == [1000, 2000]
+    assert (cfg.every, cfg.stop) == (500, 2000)
+    assert [i for i in range(0, 2500, 250) if cfg.due(i)] == [500, 1000, 1500, 2000]
+    balanced = TopologyConfig().scaled(2000 / 30000)  # 333.3 rounds to 333: stop stays a multiple of it
+    assert [i for i in range(2001) if balanced.due(i)] == [333, 666, 999, 1332]
 
 
 def test_visible_surface_offset_recovers_a_box_centre():

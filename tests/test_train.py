@@ -43,9 +43,28 @@ def test_the_schedule_follows_the_papers_proportions():
     assert (s.warmup, s.alternate, s.joint) == (500, 100, 2000)
     names = [s.phase(i).name for i in (0, 499, 500, 599, 600, 700, 1899, 2000, 2999)]
     assert names == ["warmup", "warmup", "tick", "tick", "tock", "tick", "tock", "joint", "joint"]
-    assert s.phase(2500).lr_factor == pytest.approx(0.1)
+    joint = s.phase(2500)
+    assert joint.lr_factor == pytest.approx(0.1)
+    # the joint phase decays the rates Tick-Tock governs; the background keeps its default schedule
+    assert [joint.lr_factor_of(g) for g in ("camera", "static", "agents")] == pytest.approx([0.1, 1.0, 0.1])
+    assert [s.phase(700).lr_factor_of(g) for g in ("camera", "static", "agents")] == [1.0, 1.0, 1.0]
     off = replace(s, enabled=False)
     assert {off.phase(i).name for i in (600, 700)} == {"joint"} and off.phase(700).attention == "bg"
+
+
+def test_the_joint_phase_decays_camera_and_agent_rates_and_leaves_the_background_its_own(bundle):
+    tr = _trainer(bundle, ablate=frozenset({"topology"}))
+    tr.iteration = tr.schedule.joint
+    phase = tr.schedule.phase(tr.iteration)
+    assert phase.name == "joint"
+    tr.set_lrs(phase)
+    means_decay = (tr.cfg.lr.means_final / tr.cfg.lr.means) ** (tr.iteration / tr.cfg.iterations)
+    for name, opt in tr.optimizers.items():
+        for grp in opt.param_groups:
+            f = (tr.cfg.lr.joint_decay if name in ("camera", "agents") else 1.0)
+            f *= means_decay if grp["name"].endswith("#means") else 1.0
+            assert grp["lr"] == pytest.approx(grp["base_lr"] * f), (name, grp["name"])
+    assert {"camera", "static", "agents"} <= set(tr.optimizers)
 
 
 def _grads(params):

@@ -1,8 +1,8 @@
 """Typed training configuration and the named presets (``fast``, ``balanced``, ``quality``, ``paper``).
 
 Iteration milestones are written at the paper's scale (30,000 iterations, Sec. 4.2) and scaled by
-``iterations / 30000`` (``TrainConfig.milestone``), so every preset keeps the paper's proportions: warm-up to 1/6,
-Tick-Tock alternating every 1/30 until 2/3, then the joint phase; topology evolution at 1/3 and 2/3
+``iterations / 30000`` (``TrainConfig.milestone``), so every preset keeps the same proportions: warm-up to 1/6,
+Tick-Tock alternating every 1/30 until 2/3, then the joint phase; topology evolution every 1/6 from 1/6 to 2/3
 (``agg.train.topology.TopologyConfig.scaled``).
 
 Learning rates: Gaussian means use the 3DGS convention (``lr x scene extent``, decayed exponentially by 100x over
@@ -41,7 +41,7 @@ class LearningRates:
     deform: float = 1e-3
     agent_boost: float = 10.0
     agent_boost_ablated: float = 1.0  # the boost with Tick-Tock ablated: OmniRe's rates (a probe can keep x10)
-    joint_decay: float = 0.1  # every lr x this in the joint phase
+    joint_decay: float = 0.1  # camera and agent rates x this in the joint phase (the background's keep their own)
 
 
 @dataclass(frozen=True)

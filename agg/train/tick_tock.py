@@ -4,7 +4,11 @@
 - **Tick**: the camera and the static nodes (background, sky) train; every agent parameter is frozen.
 - **Tock**: the agents (canonical Gaussians, poses, deformation) train; camera and static nodes are frozen.
   Phases alternate every ``alternate`` iterations, Tick first.
-- **joint** (from ``joint``): everything trains with every learning rate x ``joint_decay``.
+- **joint** (from ``joint``): everything trains; the rates Tick-Tock governs (camera poses and every agent rate,
+  the raised ones included) are x ``joint_decay``, while the static nodes' Gaussians keep their default 3DGS
+  schedules (Sec. 4.2: "general Gaussian attributes follow default schedules"). With Tick-Tock on, the background
+  trains only in the warm-up and the Ticks; a decayed joint phase left it short of steps (docs/BENCHMARKS.md,
+  "Exact agent priors").
 
 Freezing sets ``requires_grad = False`` on the frozen groups' parameters for the step, so their gradients are not
 small but exactly absent (``None``, i.e. zero) and their optimisers skip them; ``tests/test_tick_tock.py`` checks it.
@@ -17,14 +21,19 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 GROUPS = ("camera", "static", "agents")
+JOINT_DECAYED = frozenset({"camera", "agents"})  # the groups whose rates the joint phase decays
 
 
 @dataclass(frozen=True)
 class Phase:
     name: str  # "warmup" | "tick" | "tock" | "joint"
     trainable: frozenset  # subset of GROUPS
-    lr_factor: float
+    lr_factor: float  # x the learning rates of the groups in ``decayed``
     attention: str | None  # "bg" | "ag" | None: which semantic attention map Eq. 3 uses
+    decayed: frozenset = frozenset()  # subset of GROUPS whose rates are x lr_factor (the others x 1)
+
+    def lr_factor_of(self, group: str) -> float:
+        return self.lr_factor if group in self.decayed else 1.0
 
 
 @dataclass(frozen=True)
@@ -38,7 +47,7 @@ class TickTockSchedule:
     def phase(self, iteration: int) -> Phase:
         everything = frozenset(GROUPS)
         if iteration >= self.joint:
-            return Phase("joint", everything, self.joint_decay, None)
+            return Phase("joint", everything, self.joint_decay, None, JOINT_DECAYED)
         if iteration < self.warmup:
             return Phase("warmup", everything, 1.0, None)
         k = (iteration - self.warmup) // max(self.alternate, 1)

@@ -179,11 +179,12 @@ class Trainer:
             self.order = [self.data.train_frames[i] for i in perm]
         return self.order.pop(0)
 
-    def set_lrs(self, factor: float) -> None:
+    def set_lrs(self, phase) -> None:
         lr = self.cfg.lr
         t = min(self.iteration / max(self.cfg.iterations, 1), 1.0)
         decay = (lr.means_final / lr.means) ** t  # exponential means decay (3DGS)
-        for opt in self.optimizers.values():
+        for name, opt in self.optimizers.items():
+            factor = phase.lr_factor_of(name)
             for grp in opt.param_groups:
                 f = factor * (decay if grp["name"].endswith("#means") else 1.0)
                 grp["lr"] = grp["base_lr"] * f
@@ -232,7 +233,7 @@ class Trainer:
         g = self.graph
         phase = self.schedule.phase(self.iteration)
         trainable = self.trainable_groups(phase)
-        self.set_lrs(phase.lr_factor)
+        self.set_lrs(phase)
         frame = self.next_frame()
         loss, sem, out = self.forward_backward(frame, phase)
         if self.topology is not None and g.background.means.grad is not None:
