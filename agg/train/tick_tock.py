@@ -8,7 +8,7 @@
   the raised ones included) are x ``joint_decay``, while the static nodes' Gaussians keep their default 3DGS
   schedules (Sec. 4.2: "general Gaussian attributes follow default schedules"). With Tick-Tock on, the background
   trains only in the warm-up and the Ticks; a decayed joint phase left it short of steps (docs/BENCHMARKS.md,
-  "Exact agent priors").
+  eighteenth and nineteenth sessions).
 
 Freezing sets ``requires_grad = False`` on the frozen groups' parameters for the step, so their gradients are not
 small but exactly absent (``None``, i.e. zero) and their optimisers skip them; ``tests/test_tick_tock.py`` checks it.
