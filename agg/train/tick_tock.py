@@ -11,7 +11,7 @@
   eighteenth and nineteenth sessions).
 
 Freezing sets ``requires_grad = False`` on the frozen groups' parameters for the step, so their gradients are not
-small but exactly absent (``None``, i.e. zero) and their optimisers skip them; ``tests/test_tick_tock.py`` checks it.
+small but exactly absent (``None``, i.e. zero) and their optimisers skip them; ``tests/test_train.py`` checks it.
 With Tick-Tock ablated every group trains at every step ("joint" labels), and the semantic loss still follows the
 same alternation of attention maps, so the ablation removes the freezing alone.
 """
