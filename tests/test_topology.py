@@ -80,6 +80,8 @@ def test_a_missed_moving_car_is_spawned_on_its_trajectory(missed):
     assert (dist < 1.0).mean() >= 0.8 and np.median(dist) < 1.0, dist
     assert yaw_err.max() < 15.0, yaw_err
     assert valid.mean() >= 0.8
+    # its track's speed is an estimate: only the spawned instance's correction is free (nodes/rigid.py)
+    assert graph.rigid.speed_free.tolist() == [i == j for i in range(graph.rigid.num_instances)]
     # its Gaussians left the background (the report's keep mask says which rows), the optimiser follows
     moved = int((graph.rigid.instance == j).sum())
     assert moved >= 100 and len(graph.background) == n_bg - moved == len(report["bg_src"])

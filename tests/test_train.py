@@ -75,7 +75,9 @@ def test_tick_gives_exactly_zero_gradient_to_agents_and_tock_to_camera_and_backg
     tr = _trainer(bundle, ablate=frozenset({"topology"}))
     g = tr.graph
     assert g.rigid is not None and g.sky is not None
+    g.rigid.speed_free[0] = True  # as for a spawned agent: its track-speed correction takes part too
     groups = tr.group_params()
+    assert any(p is g.rigid.rate for p in groups["agents"])
     everything = frozenset({"camera", "static", "agents"})
     for phase, live, frozen in ((Phase("tick", frozenset({"camera", "static"}), 1.0, "bg"), ("camera", "static"),
                                  ("agents",)),
@@ -89,6 +91,8 @@ def test_tick_gives_exactly_zero_gradient_to_agents_and_tock_to_camera_and_backg
         for name in live:
             gs = [p.grad for p in groups[name] if p.grad is not None]
             assert gs and sum(float(x.abs().sum()) for x in gs) > 0, (phase.name, name)
+        if phase.name == "tock":
+            assert g.rigid.rate.grad[0] != 0
     # the same step with everything trainable does reach every group (so the zeros above come from the phase)
     for opt in tr.optimizers.values():
         opt.zero_grad(set_to_none=True)
@@ -110,6 +114,7 @@ def test_tick_tock_raises_agent_pose_translations_and_leaves_their_rotations_at_
         for node in ("rigid", "nonrigid"):
             assert groups[f"{node}#tau"] == pytest.approx(lr.agent_pose * boost * scale)
             assert groups[f"{node}#omega"] == pytest.approx(lr.agent_rotation * scale)
+            assert groups[f"{node}#rate"] == pytest.approx(lr.agent_track_rate * boost * scale)  # like tau
     on, off = rates[False], rates[True]
     assert on["rigid#tau"] == pytest.approx(10 * off["rigid#tau"]) and on["rigid#omega"] == off["rigid#omega"]
     assert on["camera#omega"] == off["camera#omega"]

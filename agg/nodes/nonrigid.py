@@ -120,9 +120,9 @@ class NonRigidAgents(RigidAgents):
                 "scales": (self.gaussians.log_scales + ds).exp(), "opacities": g["opacities"], "sh": g["sh"]}
 
     def param_groups(self, prefix: str, gaussian_lrs: dict[str, float], pose_lr: float,
-                     deform_lr: float = 1e-3, rotation_lr: float | None = None) -> list[dict]:
+                     deform_lr: float = 1e-3, rotation_lr: float | None = None, rate_lr: float = 0.0) -> list[dict]:
         """The rigid groups plus ``prefix#deform`` (the MLP's weights and the instance embeddings)."""
-        return super().param_groups(prefix, gaussian_lrs, pose_lr, rotation_lr) + [
+        return super().param_groups(prefix, gaussian_lrs, pose_lr, rotation_lr, rate_lr) + [
             {"name": f"{prefix}#deform", "params": [*self.deform.parameters(), self.embeddings],
              "lr": float(deform_lr)}]
 
@@ -152,8 +152,7 @@ class NonRigidAgents(RigidAgents):
         node = cls(GaussianParams.from_state(state["gaussians"]), state["instance"], state["prior"], state["valid"],
                    state["track_ids"], DeformConfig(**d["config"]), state.get("half_extents"))
         node.deform.load_state_dict(d["mlp"])
+        node.load_pose_state(state)
         with torch.no_grad():
-            node.omega.copy_(state["omega"])
-            node.tau.copy_(state["tau"])
             node.embeddings.copy_(d["embeddings"])
         return node

@@ -38,6 +38,8 @@ class LearningRates:
     camera_rotation: float = 1e-5  # radians, per step at 30k iterations (the paper's camera rate)
     agent_pose: float = 1e-5  # translation; x agent_boost while Tick-Tock is on (paper: 1e-4)
     agent_rotation: float = 1e-5  # radians, never boosted: Sec. 4.2 raises pose translations only (OmniRe: 1e-5)
+    agent_track_rate: float = 2e-6  # a spawned agent's track-speed correction (dimensionless), boosted like the
+    # translations: x15 (balanced) x10 is 3e-4 a step, 0.06 (seed 2's speed error) in 200 Tock steps
     deform: float = 1e-3
     agent_boost: float = 10.0
     agent_boost_ablated: float = 1.0  # the boost with Tick-Tock ablated: OmniRe's rates (a probe can keep x10)

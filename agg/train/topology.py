@@ -473,10 +473,12 @@ class TopologyEvolution:
             if graph.rigid is None:
                 dev = bg.means.device
                 graph.rigid = RigidAgents(params, instance, wfb, valid, torch.as_tensor(ids)).to(dev)
+                graph.rigid.speed_free.fill_(True)  # its track's speed is an estimate: trained (nodes/rigid.py)
                 report["new_nodes"].append("rigid")
             else:
                 graph.rigid.add_instances(params, instance, wfb, valid,
-                                          torch.as_tensor(ids, device=graph.rigid.track_ids.device), optimizer)
+                                          torch.as_tensor(ids, device=graph.rigid.track_ids.device), optimizer,
+                                          speed_free=True)
             rows_changed.add("rigid")
             report["spawned"] = ids
             self.box_half.update({tid: np.asarray(p["half"], np.float64) for tid, p in zip(ids, spawn)

@@ -141,10 +141,11 @@ class Trainer:
             lrs = gaussian_lrs(lr.agent_means * boost)
             pose_lr = lr.agent_pose * boost * self._translation_scale()  # translation: raised with Tick-Tock on
             rotation_lr = lr.agent_rotation * pose_scale  # never raised (the paper raises translations only)
+            rate_lr = lr.agent_track_rate * boost * pose_scale  # dimensionless: no scene-unit factor
             if name == "nonrigid":
-                out["agents"] += node.param_groups(name, lrs, pose_lr, lr.deform, rotation_lr)
+                out["agents"] += node.param_groups(name, lrs, pose_lr, lr.deform, rotation_lr, rate_lr)
             else:
-                out["agents"] += node.param_groups(name, lrs, pose_lr, rotation_lr)
+                out["agents"] += node.param_groups(name, lrs, pose_lr, rotation_lr, rate_lr)
         for groups in out.values():
             for grp in groups:
                 grp["base_lr"] = grp["lr"]
