@@ -37,15 +37,17 @@ A static background smears a moving car along its path, and the smear's own mean
 benchmark they put the track 2.3 m behind it by the last frame; the pixels and the depth of frame t do not lag.
 Frames without statistics (held out) neither end a track nor break its run; the fragments of one object are
 joined and its outlying centroids dropped (``topology_spawn``); a track with at least ``tau_life`` consecutive
-hits spawns a new rigid agent (``graph.rigid``, created when absent; the report's ``spawned_classes`` says what
-the features suggest): its Gaussians are the track's cluster Gaussians (those not reassigned), each moved into the
-canonical frame with the track pose of the frame (among those it was clustered in) whose centre is nearest; its
-pose prior is the track, its centroids moved from the visible surface to the box centre and RTS-smoothed again
-(``topology_track.spawn_trajectory``: a box of the graph's median agent size or ``rigid_size_m``, yaw from the
-ground velocity, its surface weighted by solid angle, and Gauss-Newton passes that leave out the part of the box
-outside the image, for a car cut off by the image edge); its track id is one more than every id seen so far
-(never reused). At each later evolution (and when training ends) a spawned agent's box is re-anchored on its own
-rendered surface (``topology_anchor``): the gradient clusters crowd a moving car's leading edge, so its box leads.
+hits spawns a new rigid agent (``graph.rigid``, created when absent; the report's ``spawned_classes`` says what the
+features suggest): its Gaussians are the track's cluster Gaussians (those not reassigned), each moved into the
+canonical frame with the track pose of the frame (among those it was clustered in) whose centre is nearest; its pose
+prior is the track, each frame's centroid read off the agent's semantic silhouette around the clusters'
+(``topology_silhouette``: the clusters crowd a moving car's leading edge; ``silhouette``), the centroids moved from
+the visible surface to the box centre and RTS-smoothed again (``topology_track.spawn_trajectory``: a box of the
+graph's median agent size or ``rigid_size_m``, yaw from the ground velocity, its surface weighted by solid angle,
+and Gauss-Newton passes that leave out the part of the box outside the image, for a car cut off by the image edge);
+its track id is one more than every id seen so far (never reused). At each later evolution (and when training ends)
+a spawned agent's box is re-anchored on its own rendered surface (``topology_anchor``), where a box still leads its
+car.
 **Pruning**: an instance whose ``prune_quantile`` opacity quantile is below ``prune_opacity`` or that has fewer
 than ``min_agent_gaussians`` Gaussians is removed (before matching, so dead agents absorb nothing). A false agent
 that does not die out (it keeps rendering the road it was initialised on) is **demoted** when it is static and not
@@ -104,6 +106,8 @@ class TopologyConfig:
     rigid_size_m: tuple[float, float, float] = (4.5, 1.8, 1.6)  # (l, w, h) of a spawned agent when the graph
     nonrigid_size_m: tuple[float, float, float] = (0.7, 0.7, 1.75)  # has no instance of its class to copy
     reset_after_evolve: bool = True  # start the gradient statistics afresh after each evolution
+    silhouette: bool = True  # a spawn's per-frame centroid from its semantic silhouette, not from its gradient
+    # clusters, which crowd a moving car's leading edge (topology_silhouette)
     reanchor: bool = True  # move a spawned agent's box onto its own rendered surface (topology_anchor) at each
     # later evolution and when training ends, ...
     reanchor_min_fit: float = 0.7  # ... when the moved box holds this share of that surface (topology_anchor)
@@ -364,7 +368,7 @@ class TopologyEvolution:
         changed = pruned_nodes | demoted_nodes | ({"background"} if n_bg > n_old else set())
         report = {"iteration": iteration, "reassigned": 0, "spawned": [], "spawned_classes": [],
                   "pruned": pruned + demoted, "demoted": demoted, "candidates": 0, "clusters": 0, "tracks": 0,
-                  "track_runs": [], "floating": [], "reanchored": anchored,
+                  "track_runs": [], "floating": [], "silhouette": [0, 0], "reanchored": anchored,
                   "structure_changed": bool(pruned or demoted), "new_nodes": [], "rows_changed": sorted(changed),
                   "bg_src": src}
         if self.sum is None or not bool((self.count > 0).any()):

@@ -15,6 +15,7 @@ import numpy as np
 
 from agg.priors.kalman import smooth_sequence
 from agg.priors.tracklet_ground import height_above_road
+from agg.train import topology_silhouette as ts
 from agg.train import topology_track as tt
 
 
@@ -77,6 +78,12 @@ def plan_spawns(evo, graph, unmatched: list[list[dict]], means: np.ndarray, take
             continue
         centroids = {t: np.average([c["centre"] for c in cs], axis=0, weights=[len(c["members"]) for c in cs])
                      for t, cs in per_frame.items()}  # frame -> [3], member-weighted over its clusters
+        fallback = tt.ground_axis_yaw(means[rows])
+        nonrigid = float(np.mean([c["nonrigid"] for _, c in clusters]))
+        cls = "non-rigid" if nonrigid > 0.5 else "rigid"
+        half = spawn_half(graph, cls, cfg, u, evo.box_half)
+        if cfg.silhouette and evo.bank is not None and evo.depth is not None:
+            centroids = {t: silhouette_or(evo, t, c, cfw[t], half, report) for t, c in centroids.items()}
         z = np.full((n_frames, 3), np.nan)
         for t, c in centroids.items():
             z[t] = c
@@ -85,10 +92,6 @@ def plan_spawns(evo, graph, unmatched: list[list[dict]], means: np.ndarray, take
         centroids = {t: c for t, c in centroids.items() if not np.isnan(z[t, 0])}
         state, _ = smooth_sequence(z, r, accel_var=params.accel_sigma ** 2,
                                    init_vel_var=params.init_vel_sigma ** 2)  # [T, 6]
-        fallback = tt.ground_axis_yaw(means[rows])
-        nonrigid = float(np.mean([c["nonrigid"] for _, c in clusters]))
-        cls = "non-rigid" if nonrigid > 0.5 else "rigid"
-        half = spawn_half(graph, cls, cfg, u, evo.box_half)
         poses, valid = tt.spawn_trajectory(
             state, centroids, cam_centres, half, in_view, fallback, meas_sigma=params.meas_sigma,
             accel_sigma=cfg.smooth_accel_sigma_m * u, init_vel_sigma=params.init_vel_sigma,
@@ -104,6 +107,19 @@ def plan_spawns(evo, graph, unmatched: list[list[dict]], means: np.ndarray, take
     # the longest run of each (joined) track over the frames with statistics, longest first
     report["track_runs"] = sorted(runs, reverse=True)[:8]
     return plans
+
+
+def silhouette_or(evo, t: int, centroid: np.ndarray, camera_from_world: np.ndarray, half: np.ndarray,
+                  report: dict) -> np.ndarray:
+    """Frame t's visible-surface centroid of the agent at ``centroid`` (the member-weighted cluster centroid, a
+    world point [3] on it) read off its semantic silhouette (``topology_silhouette``), or ``centroid`` itself
+    where there is none. Counts both in ``report["silhouette"]`` ([from the silhouette, kept])."""
+    cfg = evo.config
+    found = ts.silhouette_centroid(centroid, evo.semantics.features[t], evo.bank, cfg.tau_sem, evo.depth[t],
+                                   camera_from_world, evo.K[min(t, len(evo.K) - 1)], 2.0 * float(np.linalg.norm(half)),
+                                   None if evo.dynamic is None else evo.dynamic[t], near=cfg.near_m * evo.unit)
+    report["silhouette"][found is None] += 1
+    return centroid if found is None else found[0]
 
 
 def road_contact(evo, poses: np.ndarray, valid: np.ndarray, half: np.ndarray,

@@ -32,8 +32,8 @@ from agg.train.losses import photometric_loss, semantic_attention_loss
 from agg.train.tick_tock import GROUPS, TickTockSchedule, set_trainable
 
 # what the topology log keeps of each evolution's report
-LOG_KEYS = ("iteration", "candidates", "clusters", "tracks", "track_runs", "floating", "reassigned", "spawned",
-            "pruned", "demoted", "reanchored")
+LOG_KEYS = ("iteration", "candidates", "clusters", "tracks", "track_runs", "floating", "silhouette", "reassigned",
+            "spawned", "pruned", "demoted", "reanchored")
 
 
 class Cancelled(Exception):
