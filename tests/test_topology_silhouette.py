@@ -10,7 +10,7 @@ from agg.synth.corrupt import NoiseConfig
 from agg.synth.scene import SEM, SceneConfig
 from agg.synth.suite import generate, load_gt_extras, write_bundle
 from agg.train import topology_track as tt
-from agg.train.topology_silhouette import silhouette_centroid
+from agg.train.topology_silhouette import frame_cells, silhouette_centroid
 
 
 @pytest.fixture(scope="module")
@@ -52,15 +52,16 @@ def test_the_silhouette_centroid_is_the_whole_car_from_any_point_on_it(clip):
     vs, us = np.nonzero(extras["instance"][t] == k)
     surface = tt.backproject(np.stack([us, vs], 1).astype(np.float64), depth[vs, us], cfw, K)  # [P, 3]
     along = (surface - pose[:3, 3]) @ pose[:3, 0]  # [P] along its heading
+    cells = frame_cells(feats, bank, 0.5, depth, cfw, K)
     ends = surface[np.argmax(along)], surface[np.argmin(along)]
     assert min(np.linalg.norm(e - truth) for e in ends) > 1.0  # the ends are far from the centroid
     for seed in (truth, *ends):
-        found = silhouette_centroid(seed, feats, bank, 0.5, depth, cfw, K, 2.0 * np.linalg.norm(half))
+        found = silhouette_centroid(seed, cells, cfw, K, 2.0 * np.linalg.norm(half))
         assert found is not None
-        centre, cells = found
+        centre, n = found
         # a 4-pixel feature cell quantises the outline: within 0.25 m of the pixels' centroid, wherever the seed
         assert np.linalg.norm(centre - truth) < 0.25, (centre, truth)
-        assert cells >= 10
+        assert n >= 10
 
 
 def test_other_agents_masks_and_missing_views_give_nothing(clip):
@@ -71,10 +72,11 @@ def test_other_agents_masks_and_missing_views_give_nothing(clip):
     reach = 2.0 * np.linalg.norm([2.25, 0.8, 0.9])
     # the car's own pixels explained by another agent (its prior dynamic mask): no silhouette is left
     own = extras["instance"][t] == k
-    assert silhouette_centroid(truth, feats, bank, 0.5, depth, cfw, K, reach, exclude=own) is None
+    assert silhouette_centroid(truth, frame_cells(feats, bank, 0.5, depth, cfw, K, own), cfw, K, reach) is None
+    cells = frame_cells(feats, bank, 0.5, depth, cfw, K)
     # a seed behind the camera, or on the road far from any agent-like cell
     behind = cfw[:3, :3].T @ (np.array([0.0, 0.0, -5.0]) - cfw[:3, 3])
-    assert silhouette_centroid(behind, feats, bank, 0.5, depth, cfw, K, reach) is None
+    assert silhouette_centroid(behind, cells, cfw, K, reach) is None
     road = (extras["instance"][t] == 0) & (extras["semantic"][t] == SEM["road"])
     far = np.ones_like(road)
     for i in range(1, extras["instance"].max() + 1):  # pixels more than 20 px from every agent
@@ -84,6 +86,6 @@ def test_other_agents_masks_and_missing_views_give_nothing(clip):
     vs, us = np.nonzero(road & far & (depth > 0))
     assert len(vs), "the clip has road away from the agents"
     seed = tt.backproject(np.array([[us[0], vs[0]]], np.float64), depth[vs[:1], us[:1]], cfw, K)[0]
-    assert silhouette_centroid(seed, feats, bank, 0.5, depth, cfw, K, reach) is None
+    assert silhouette_centroid(seed, cells, cfw, K, reach) is None
     # too small a reach keeps too few cells
-    assert silhouette_centroid(truth, feats, bank, 0.5, depth, cfw, K, 0.05) is None
+    assert silhouette_centroid(truth, cells, cfw, K, 0.05) is None

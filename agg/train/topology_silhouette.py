@@ -24,6 +24,7 @@ Without features, a prototype bank or depth, or with fewer than ``min_cells`` ce
 from __future__ import annotations
 
 import warnings
+from dataclasses import dataclass
 
 import numpy as np
 from scipy import ndimage
@@ -61,32 +62,49 @@ def cell_points(depth: np.ndarray, h: int, w: int, camera_from_world: np.ndarray
     return points, z, cos3
 
 
-def silhouette_centroid(seed: np.ndarray, features: np.ndarray, bank: dict, tau_sem: float, depth: np.ndarray,
-                        camera_from_world: np.ndarray, K: np.ndarray, reach: float,  # noqa: N803
-                        exclude: np.ndarray | None = None, min_cells: int = 4, near: float = 0.0
-                        ) -> tuple[np.ndarray, int] | None:
-    """(world centroid [3] of the visible surface of the agent at ``seed`` [3] (a world point on it), number of
-    cells) from one frame's feature map [h, w, C] (module doc), or None when the seed is out of view or the
-    silhouette has fewer than ``min_cells`` cells. depth: the prior z-depth [H, W] at the training resolution
-    (0 = none); reach: the largest distance from the seed a point of the agent can have (its box diagonal);
-    exclude: optional [H, W] bool, pixels explained by other agents (the prior dynamic masks)."""
+@dataclass(frozen=True)
+class FrameCells:
+    """What a frame's feature map says about agents, whatever the seed: which cells may belong to a silhouette
+    (agent-like, with depth, off the excluded pixels) [h, w] bool, their points [h, w, 3] and ``cos^3``
+    weights [h, w] (``cell_points``), and the training resolution they map to."""
+    candidate: np.ndarray
+    points: np.ndarray
+    cos3: np.ndarray
+    width: int
+    height: int
+
+
+def frame_cells(features: np.ndarray, bank: dict, tau_sem: float, depth: np.ndarray, camera_from_world: np.ndarray,
+                K: np.ndarray, exclude: np.ndarray | None = None) -> FrameCells:  # noqa: N803
+    """The ``FrameCells`` of one frame: its feature map [h, w, C], the prior z-depth [H, W] at the training
+    resolution (0 = none) and optionally the pixels [H, W] bool explained by other agents (the prior dynamic
+    masks). Computed once per frame; every seed of that frame reads it (``silhouette_centroid``)."""
     height, width = depth.shape
     h, w = features.shape[:2]
-    uv, _, vis = tt.project(np.asarray(seed, np.float64)[None], camera_from_world, K, width, height, near)
-    if not vis[0]:
-        return None
     ag, _ = tt.agent_like(np.asarray(features, np.float32).reshape(h * w, -1), bank, tau_sem)
-    mask = ag.reshape(h, w)
     points, z, cos3 = cell_points(np.asarray(depth, np.float64), h, w, camera_from_world, K)
-    mask &= (z > 0) & (np.linalg.norm(points - seed, axis=-1) <= reach)
+    candidate = ag.reshape(h, w) & (z > 0)
     if exclude is not None:
         jj, ii = np.meshgrid(np.arange(w), np.arange(h))
-        px = np.clip(((jj + 0.5) * width / w).astype(np.int64), 0, width - 1)
-        py = np.clip(((ii + 0.5) * height / h).astype(np.int64), 0, height - 1)
-        mask &= ~np.asarray(exclude, bool)[py, px]
+        px, py = tt.cell_centre_pixels(jj, ii, w, h, width, height)
+        candidate &= ~np.asarray(exclude, bool)[py, px]
+    return FrameCells(candidate, points, cos3, width, height)
+
+
+def silhouette_centroid(seed: np.ndarray, cells: FrameCells, camera_from_world: np.ndarray, K: np.ndarray,  # noqa: N803
+                        reach: float, min_cells: int = 4, near: float = 0.0) -> tuple[np.ndarray, int] | None:
+    """(world centroid [3] of the visible surface of the agent at ``seed`` [3] (a world point on it), number of
+    cells) from one frame's ``FrameCells`` (module doc), or None when the seed is out of view or the silhouette
+    has fewer than ``min_cells`` cells. reach: the largest distance from the seed a point of the agent can have
+    (its box diagonal)."""
+    h, w = cells.candidate.shape
+    uv, _, vis = tt.project(np.asarray(seed, np.float64)[None], camera_from_world, K, cells.width, cells.height, near)
+    if not vis[0]:
+        return None
+    mask = cells.candidate & (np.linalg.norm(cells.points - seed, axis=-1) <= reach)
     labels, _ = ndimage.label(mask, structure=_EIGHT)  # [h, w], 0 = not in a component
-    ci = int(np.clip((uv[0, 1] + 0.5) * h / height, 0, h - 1))
-    cj = int(np.clip((uv[0, 0] + 0.5) * w / width, 0, w - 1))
+    ci = int(np.clip((uv[0, 1] + 0.5) * h / cells.height, 0, h - 1))
+    cj = int(np.clip((uv[0, 0] + 0.5) * w / cells.width, 0, w - 1))
     near_cells = labels[max(ci - 1, 0):ci + 2, max(cj - 1, 0):cj + 2]  # the seed's cell or one next to it
     if labels[ci, cj] > 0:
         label = labels[ci, cj]
@@ -94,9 +112,9 @@ def silhouette_centroid(seed: np.ndarray, features: np.ndarray, bank: dict, tau_
         label = np.bincount(near_cells[near_cells > 0]).argmax()
     else:
         return None
-    cells = labels == label
-    n = int(cells.sum())
+    part = labels == label
+    n = int(part.sum())
     if n < min_cells:
         return None
-    wts = cos3[cells]
-    return (points[cells] * wts[:, None]).sum(0) / wts.sum(), n
+    wts = cells.cos3[part]
+    return (cells.points[part] * wts[:, None]).sum(0) / wts.sum(), n

@@ -34,6 +34,7 @@ def plan_spawns(evo, graph, unmatched: list[list[dict]], means: np.ndarray, take
                        cfg.stitch_gap_frames, observed)
     report["tracks"] = len(groups)
     plans, claimed, runs = [], taken.copy(), []
+    frames: dict[int, ts.FrameCells] = {}  # frame -> its feature cells, shared by every track's silhouettes
     cfw = graph.camera.camera_from_world().detach().cpu().numpy().astype(np.float64)  # [T, 4, 4]
     cam_centres = np.linalg.inv(cfw)[:, :3, 3]  # [T, 3]
     n_frames = len(cfw)
@@ -83,7 +84,8 @@ def plan_spawns(evo, graph, unmatched: list[list[dict]], means: np.ndarray, take
         cls = "non-rigid" if nonrigid > 0.5 else "rigid"
         half = spawn_half(graph, cls, cfg, u, evo.box_half)
         if cfg.silhouette and evo.bank is not None and evo.depth is not None:
-            centroids = {t: silhouette_or(evo, t, c, cfw[t], half, report) for t, c in centroids.items()}
+            centroids = {t: silhouette_or(evo, t, c, cfw[t], half, report, frames)
+                         for t, c in centroids.items()}
         z = np.full((n_frames, 3), np.nan)
         for t, c in centroids.items():
             z[t] = c
@@ -110,14 +112,18 @@ def plan_spawns(evo, graph, unmatched: list[list[dict]], means: np.ndarray, take
 
 
 def silhouette_or(evo, t: int, centroid: np.ndarray, camera_from_world: np.ndarray, half: np.ndarray,
-                  report: dict) -> np.ndarray:
+                  report: dict, frames: dict) -> np.ndarray:
     """Frame t's visible-surface centroid of the agent at ``centroid`` (the member-weighted cluster centroid, a
     world point [3] on it) read off its semantic silhouette (``topology_silhouette``), or ``centroid`` itself
-    where there is none. Counts both in ``report["silhouette"]`` ([from the silhouette, kept])."""
+    where there is none. Counts both in ``report["silhouette"]`` ([from the silhouette, kept]). ``frames``:
+    frame -> ``FrameCells``, filled on first use."""
     cfg = evo.config
-    found = ts.silhouette_centroid(centroid, evo.semantics.features[t], evo.bank, cfg.tau_sem, evo.depth[t],
-                                   camera_from_world, evo.K[min(t, len(evo.K) - 1)], 2.0 * float(np.linalg.norm(half)),
-                                   None if evo.dynamic is None else evo.dynamic[t], near=cfg.near_m * evo.unit)
+    k = evo.K[min(t, len(evo.K) - 1)]
+    if t not in frames:
+        frames[t] = ts.frame_cells(evo.semantics.features[t], evo.bank, cfg.tau_sem, evo.depth[t], camera_from_world,
+                                   k, None if evo.dynamic is None else evo.dynamic[t])
+    found = ts.silhouette_centroid(centroid, frames[t], camera_from_world, k, 2.0 * float(np.linalg.norm(half)),
+                                   near=cfg.near_m * evo.unit)
     report["silhouette"][found is None] += 1
     return centroid if found is None else found[0]
 

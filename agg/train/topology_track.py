@@ -367,6 +367,15 @@ def ground_axis_yaw(points: np.ndarray) -> float:
     return yaw_from_heading(vt[0, 0], vt[0, 1])
 
 
+def cell_centre_pixels(xs: np.ndarray, ys: np.ndarray, w: int, h: int, width: int, height: int
+                       ) -> tuple[np.ndarray, np.ndarray]:
+    """Training-resolution pixel (column, row) index arrays of the centres of the cells (xs, ys) of a [h, w]
+    feature map over a [height, width] image."""
+    px = np.clip(((np.asarray(xs) + 0.5) * width / w).astype(np.int64), 0, width - 1)
+    py = np.clip(((np.asarray(ys) + 0.5) * height / h).astype(np.int64), 0, height - 1)
+    return px, py
+
+
 def region_agent_fraction(features: np.ndarray, bank: dict, tau_sem: float, uv: np.ndarray, radius: float,
                           width: int, height: int, exclude: np.ndarray | None = None) -> float:
     """Fraction of agent-like cells of a low-resolution feature map [h, w, C] in the square of half side
@@ -380,8 +389,7 @@ def region_agent_fraction(features: np.ndarray, bank: dict, tau_sem: float, uv: 
     ys, xs = np.mgrid[int(y0):int(y1) + 1, int(x0):int(x1) + 1]  # cell indices
     ys, xs = ys.ravel(), xs.ravel()
     if exclude is not None:
-        px = np.clip(((xs + 0.5) * width / w).astype(np.int64), 0, width - 1)
-        py = np.clip(((ys + 0.5) * height / h).astype(np.int64), 0, height - 1)
+        px, py = cell_centre_pixels(xs, ys, w, h, width, height)
         free = ~np.asarray(exclude, bool)[py, px]
         ys, xs = ys[free], xs[free]
     if len(xs) == 0:
