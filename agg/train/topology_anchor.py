@@ -96,10 +96,8 @@ def instance_surface(graph, node, j: int, frame: int, min_alpha: float = 0.05
         return None
     kk = k.detach().cpu().numpy().astype(np.float64)
     uv = np.stack([us, vs], 1).astype(np.float64)  # pixel centres (OpenCV convention)
-    xy = (uv - kk[:2, 2]) / np.diag(kk)[:2]  # [P, 2] normalised image coordinates
-    cos3 = (1.0 + (xy ** 2).sum(1)) ** -1.5
     points = tt.backproject(uv, depth[vs, us], viewmat.detach().cpu().numpy().astype(np.float64), kk)
-    return points, alpha[vs, us] * cos3
+    return points, alpha[vs, us] * tt.ray_cos3(uv, kk)
 
 
 def estimate_offset(graph, node, j: int, half: np.ndarray, near: float, axes=(1.0, 1.0, 1.0), margin: float = 0.25

@@ -56,8 +56,7 @@ def cell_points(depth: np.ndarray, h: int, w: int, camera_from_world: np.ndarray
                 z[i, j] = np.median(block) if len(block) else 0.0
     jj, ii = np.meshgrid(np.arange(w), np.arange(h))
     uv = np.stack([(jj + 0.5) * width / w - 0.5, (ii + 0.5) * height / h - 0.5], -1).reshape(-1, 2)  # [h*w, 2]
-    xy = (uv - K[:2, 2]) / np.diag(K)[:2]
-    cos3 = ((1.0 + (xy ** 2).sum(1)) ** -1.5).reshape(h, w)
+    cos3 = tt.ray_cos3(uv, K).reshape(h, w)
     points = tt.backproject(uv, z.reshape(-1), camera_from_world, K).reshape(h, w, 3)
     return points, z, cos3
 

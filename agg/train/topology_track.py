@@ -53,6 +53,13 @@ def backproject(uv: np.ndarray, z: np.ndarray, camera_from_world: np.ndarray, K:
     return (pc - camera_from_world[:3, 3]) @ camera_from_world[:3, :3]  # R^T (p - t)
 
 
+def ray_cos3(uv: np.ndarray, K: np.ndarray) -> np.ndarray:  # noqa: N803
+    """[N] cos^3 of the angle between the rays through pixels uv [N, 2] and the optical axis: the solid angle a
+    pixel spans shrinks by it off axis, so a point read off it weighs that much less."""
+    xy = (uv - K[:2, 2]) / np.diag(K)[:2]  # [N, 2] normalised image coordinates
+    return (1.0 + (xy ** 2).sum(1)) ** -1.5
+
+
 def pixel_at(image: np.ndarray, uv: np.ndarray, width: int, height: int) -> np.ndarray:
     """[N] values of a [height, width] image at the nearest pixel of each uv [N, 2] (clamped to the image)."""
     ui = np.clip(np.rint(uv[:, 0]), 0, width - 1).astype(np.int64)
