@@ -52,6 +52,19 @@ def test_the_schedule_follows_the_papers_proportions():
     assert {off.phase(i).name for i in (600, 700)} == {"joint"} and off.phase(700).attention == "bg"
 
 
+def test_a_tick_share_lengthens_each_tick_and_shortens_the_tock_it_pairs_with():
+    s = TickTockSchedule(500, 100, 2000, tick_share=0.75)
+    names = [s.phase(i).name for i in range(500, 2000)]
+    assert names[:150] == ["tick"] * 150 and names[150:200] == ["tock"] * 50 and names[200] == "tick"
+    assert names[:1400].count("tick") == 3 * names[:1400].count("tock") == 1050  # 7 whole cycles of 200
+    assert [s.phase(i).attention for i in (649, 650)] == ["bg", "ag"]  # the semantic maps follow the phases
+    equal = TickTockSchedule(500, 100, 2000)  # the paper's halves: the same phases as alternating every 100
+    assert all(equal.phase(i).name == ("tick" if (i - 500) // 100 % 2 == 0 else "tock") for i in range(500, 2000))
+    assert TickTockSchedule(0, 1, 10, tick_share=0.9).tick_length == 1  # a cycle of 2 keeps one Tock step
+    with pytest.raises(ValueError, match="tick_share"):
+        replace(get_preset("tiny"), tick_share=1.0)
+
+
 def test_the_joint_phase_decays_camera_and_agent_rates_and_leaves_the_background_its_own(bundle):
     tr = _trainer(bundle, ablate=frozenset({"topology"}))
     tr.iteration = tr.schedule.joint

@@ -58,6 +58,7 @@ class TrainConfig:
     # milestones at the paper's scale (scaled by milestone())
     warmup: int = 5_000
     alternate: int = 1_000
+    tick_share: float = 0.5  # share of each Tick + Tock cycle spent in the Tick (paper: 0.5, equal halves)
     joint: int = 20_000
     # losses
     ssim_weight: float = 0.2
@@ -85,6 +86,8 @@ class TrainConfig:
     def __post_init__(self):
         if self.densify_grad not in ("photo", "total"):
             raise ValueError(f"densify_grad must be 'photo' or 'total', got {self.densify_grad!r}")
+        if not 0.0 < self.tick_share < 1.0:
+            raise ValueError(f"tick_share must lie strictly between 0 and 1, got {self.tick_share}")
 
     @property
     def scale(self) -> float:

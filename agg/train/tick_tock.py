@@ -3,7 +3,9 @@
 - **warm-up** (until ``warmup``): every node group trains.
 - **Tick**: the camera and the static nodes (background, sky) train; every agent parameter is frozen.
 - **Tock**: the agents (canonical Gaussians, poses, deformation) train; camera and static nodes are frozen.
-  Phases alternate every ``alternate`` iterations, Tick first.
+  Phases alternate every ``alternate`` iterations, Tick first (the paper's equal halves); ``tick_share`` other
+  than 0.5 splits each Tick + Tock cycle of ``2 * alternate`` iterations unequally (0.75: a Tick three times as long
+  as the Tock), so the background and camera train a larger share of a short run.
 - **joint** (from ``joint``): everything trains; the rates Tick-Tock governs (camera poses and every agent rate,
   the raised ones included) are x ``joint_decay``, while the static nodes' Gaussians keep their default 3DGS
   schedules (Sec. 4.2: "general Gaussian attributes follow default schedules"). With Tick-Tock on, the background
@@ -43,6 +45,13 @@ class TickTockSchedule:
     joint: int
     enabled: bool = True
     joint_decay: float = 0.1
+    tick_share: float = 0.5  # share of each Tick + Tock cycle (2 * alternate iterations) spent in the Tick
+
+    @property
+    def tick_length(self) -> int:
+        """Iterations of each Tick (the rest of the ``2 * alternate`` cycle is the Tock); at least 1 of each."""
+        cycle = 2 * max(self.alternate, 1)
+        return min(max(int(round(cycle * self.tick_share)), 1), cycle - 1)
 
     def phase(self, iteration: int) -> Phase:
         everything = frozenset(GROUPS)
@@ -50,8 +59,7 @@ class TickTockSchedule:
             return Phase("joint", everything, self.joint_decay, None, JOINT_DECAYED)
         if iteration < self.warmup:
             return Phase("warmup", everything, 1.0, None)
-        k = (iteration - self.warmup) // max(self.alternate, 1)
-        tick = k % 2 == 0
+        tick = (iteration - self.warmup) % (2 * max(self.alternate, 1)) < self.tick_length
         attention = "bg" if tick else "ag"
         if not self.enabled:
             return Phase("joint", everything, 1.0, attention)

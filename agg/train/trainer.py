@@ -62,7 +62,7 @@ class Trainer:
         graph.width, graph.height = data.width, data.height
         cfg = config
         self.schedule = TickTockSchedule(cfg.milestone(cfg.warmup), max(1, cfg.milestone(cfg.alternate)),
-                                         cfg.milestone(cfg.joint), cfg.tick_tock, cfg.lr.joint_decay)
+                                         cfg.milestone(cfg.joint), cfg.tick_tock, cfg.lr.joint_decay, cfg.tick_share)
         self.extent = scene_extent(graph)
         # metres per scene unit: the metric settings (topology, pose rates) read scene units through it
         if metric is None:
