@@ -30,17 +30,25 @@ def _mean(vals):
     return float(np.mean(vals)) if vals else None
 
 
-def synth_tables(runs: list[dict]) -> list[str]:
-    synth = [r for r in runs if r["kind"] == "synth"]
+def synth_presets(runs: list[dict]) -> list[str]:
+    """The presets the suite ran at, the acceptance preset (balanced) first."""
+    return sorted({r["preset"] for r in runs if r["kind"] == "synth"}, key=lambda p: (p != "balanced", p))
+
+
+def synth_tables(runs: list[dict], preset: str) -> list[str]:
+    """The suite's tables at ``preset``: AGG against the baseline per pose noise, the ablations, topology and
+    cameras; the acceptance preset (balanced) also gets where the error lies and the agents' poses."""
+    synth = [r for r in runs if r["kind"] == "synth" and r["preset"] == preset]
     if not synth:
         return []
+    detail = preset == "balanced"
     by = defaultdict(list)  # (noise, variant) -> runs
     for r in synth:
         by[(r["noise"], r["variant"])].append(r)
     noises = sorted({r["noise"] for r in synth})
-    out = ["### Synthetic suite: AGG against the fixed-topology baseline",
+    out = [f"### Synthetic suite at `{preset}`: AGG against the fixed-topology baseline",
            "",
-           f"Preset `{synth[0]['preset']}`; each cell is the mean over the seeds run (per-seed values in brackets); "
+           f"Preset `{preset}`; each cell is the mean over the seeds run (per-seed values in brackets); "
            "every scene has 1 missed moving car and 1 false agent in its priors. PSNR in dB on the held-out frames.",
            "",
            "| Pose noise | Seeds | AGG PSNR | Baseline PSNR | Δ | AGG agent PSNR | Baseline agent PSNR | Δ agents |",
@@ -117,7 +125,7 @@ def synth_tables(runs: list[dict]) -> list[str]:
                        f"{_fmt(c['prior']['max_m'], 3)} | {_fmt(c['refined']['mean_m'], 3)} / "
                        f"{_fmt(c['refined']['max_m'], 3)} | {_fmt(c['refined'].get('sim3_mean_m'), 3)} | "
                        f"{secs:.0f} |")
-    regions = [r for r in synth if r.get("regions")]
+    regions = [r for r in synth if r.get("regions")] if detail else []
     if regions:
         out += ["", "**Where the error lies** (runs that record it): the PSNR of the pixels outside the agent masks "
                 "(one MSE pooled over the test frames; *PSNR* is the per-frame mean, as above), the share of the test "
@@ -135,7 +143,7 @@ def synth_tables(runs: list[dict]) -> list[str]:
                        f"{_fmt(m['psnr_agents'])} | {_fmt(g['psnr_background'])} | "
                        f"{100 * g['agent_pixel_share']:.1f} % | {100 * g['agent_error_share']:.1f} % | "
                        f"+{ceiling:.2f} |")
-    poses = [r for r in synth if r.get("agent_poses")]
+    poses = [r for r in synth if r.get("agent_poses")] if detail else []
     if poses:
         out += ["", "**Agents' refined poses** (runs that record them): for each true agent of the priors, the median "
                 "box-centre and rotation error against ground truth over its valid frames; the median over agents.",
@@ -164,13 +172,13 @@ def probe_table(runs: list[dict]) -> list[str]:
     probes = [r for r in runs if r["kind"] == "probe" and not r.get("oracle_agents")]
     if not probes:
         return []
-    plain = {(r["seed"], r["noise"], r["variant"]): r for r in runs if r["kind"] == "synth"}
+    plain = {(r["seed"], r["noise"], r["variant"], r["preset"]): r for r in runs if r["kind"] == "synth"}
     out = ["### Probes: the same runs with training options replaced", "",
            "| Seed | Noise | Variant | Options | PSNR | Agent PSNR | Gaussians | Wall (s) | Unchanged PSNR / agent "
            "PSNR |", "|---|---|---|---|---|---|---|---|---|"]
     for r in sorted(probes, key=lambda r: (r["seed"], r["noise"], " ".join(r["set"]), r["variant"])):
         a = r.get("agent_noise", 0.0)
-        m, ref = r["metrics"], None if a else plain.get((r["seed"], r["noise"], r["variant"]))
+        m, ref = r["metrics"], None if a else plain.get((r["seed"], r["noise"], r["variant"], r["preset"]))
         base = _psnr_pair(ref)
         opts = ", ".join(r["set"] + ([f"agent noise {a:g} m"] if a else []))
         out.append(f"| {r['seed']} | {r['noise']:g} m | {r['variant']} | {opts} | {_fmt(m['psnr'])} | "
@@ -239,8 +247,9 @@ def oracle_table(runs: list[dict]) -> list[str]:
     suite's camera noise) beside the suite's runs of the same seed and noise: how much of the full-image PSNR is
     there to win by correcting the agents, measured by training rather than by rescoring pixels."""
     oracle = {(r["seed"], r["noise"], r["variant"]): r for r in runs
-              if r["kind"] == "probe" and r.get("oracle_agents") and _default_options(r)}
-    plain = {(r["seed"], r["noise"], r["variant"]): r for r in runs if r["kind"] == "synth"}
+              if r["kind"] == "probe" and r.get("oracle_agents") and r["preset"] == "balanced" and _default_options(r)}
+    plain = {(r["seed"], r["noise"], r["variant"]): r for r in runs
+             if r["kind"] == "synth" and r["preset"] == "balanced"}
     cases = sorted({(s, n) for s, n, v in oracle if v == "baseline" and (s, n, "baseline") in plain})
     if not cases:
         return []
@@ -310,14 +319,16 @@ def plots(runs: list[dict], docs: Path) -> list[str]:
     if synth:
         fig, axes = plt.subplots(1, 2, figsize=(9, 3.4))
         for ax, key, title in ((axes[0], "psnr", "full image"), (axes[1], "psnr_agents", "agent regions")):
-            for v, style in (("agg", "o-"), ("baseline", "s--")):
+            for (v, preset), style in zip([(v, p) for p in synth_presets(synth) for v in ("agg", "baseline")],
+                                          ("o-", "s--", "^-", "v--")):
                 rows = defaultdict(list)
                 for r in synth:
-                    if r["variant"] == v and r["metrics"].get(key) is not None:
+                    if (r["variant"], r["preset"]) == (v, preset) and r["metrics"].get(key) is not None:
                         rows[r["noise"]].append(r["metrics"][key])
                 xs = sorted(rows)
                 if xs:
-                    ax.plot(xs, [np.mean(rows[x]) for x in xs], style, label="AGG" if v == "agg" else "baseline")
+                    ax.plot(xs, [np.mean(rows[x]) for x in xs], style,
+                            label=f"{'AGG' if v == 'agg' else 'baseline'}, {preset}")
             ax.set_xlabel("camera pose noise bound (m)")
             ax.set_ylabel("NVS PSNR (dB)")
             ax.set_title(title)
@@ -350,7 +361,9 @@ def write_report(work: Path, docs: Path, machine: str) -> None:
     lines = [START, "## AGG suite (`bench/agg_suite.py`)", "",
              f"Written {datetime.date.today().isoformat()} on the CI-class VM (2 vCPU, {machine}, torch 2.13 CPU, "
              "one OpenMP thread per run, two runs at a time).", ""]
-    lines += synth_tables(runs) + [""] + probe_table(runs) + oracle_table(runs) + noisy_box_table(runs)
+    for preset in synth_presets(runs):
+        lines += synth_tables(runs, preset) + [""]
+    lines += probe_table(runs) + oracle_table(runs) + noisy_box_table(runs)
     lines += other_tables(runs)
     lines += [f"![{m}]({m})" for m in made] + [END]
     path = docs / "BENCHMARKS.md"
