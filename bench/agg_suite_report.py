@@ -198,15 +198,16 @@ def noisy_box_table(runs: list[dict]) -> list[str]:
     """The suite's comparison on noisy tracklet boxes too (probes with ``--agent-noise`` and the preset's own
     options): AGG against the baseline and against no-tick-tock, per seed, with the missed car's coverage."""
     rows = [r for r in runs if r["kind"] == "probe" and r.get("agent_noise") and _default_options(r)]
-    by = defaultdict(dict)  # (noise, agent noise) -> {(seed, variant): run}
+    by = defaultdict(dict)  # (preset, noise, agent noise) -> {(seed, variant): run}
     for r in rows:
-        by[(r["noise"], r["agent_noise"])][(r["seed"], r["variant"])] = r
+        by[(r["preset"], r["noise"], r["agent_noise"])][(r["seed"], r["variant"])] = r
     out = []
-    for (noise, a), cell in sorted(by.items()):
+    for (preset, noise, a), cell in sorted(by.items()):
         seeds = sorted({s for s, v in cell if v == "agg"})
         if not seeds:
             continue
-        out += [f"### Noisy boxes: cameras at {noise:g} m and tracklet box centres moved by up to {a:g} m", "",
+        out += [f"### Noisy boxes at `{preset}`: cameras at {noise:g} m and tracklet box centres moved by up to "
+                f"{a:g} m", "",
                 "The suite's comparison with the agent priors wrong too (`probe --agent-noise`; the preset's own "
                 "options). Full image / agent PSNR in dB; Δ = AGG − variant; *missed car*: the AGG run's spawned "
                 "agent within 1 m of the missed car (of visible frames); *centre error*: the true agents' median "
@@ -246,11 +247,11 @@ def oracle_table(runs: list[dict]) -> list[str]:
     """What exact agent priors give (probes with ``--oracle-agents``: every agent in the priors, no false one, the
     suite's camera noise) beside the suite's runs of the same seed and noise: how much of the full-image PSNR is
     there to win by correcting the agents, measured by training rather than by rescoring pixels."""
-    oracle = {(r["seed"], r["noise"], r["variant"]): r for r in runs
-              if r["kind"] == "probe" and r.get("oracle_agents") and r["preset"] == "balanced" and _default_options(r)}
-    plain = {(r["seed"], r["noise"], r["variant"]): r for r in runs
-             if r["kind"] == "synth" and r["preset"] == "balanced"}
-    cases = sorted({(s, n) for s, n, v in oracle if v == "baseline" and (s, n, "baseline") in plain})
+    oracle = {(r["preset"], r["seed"], r["noise"], r["variant"]): r for r in runs
+              if r["kind"] == "probe" and r.get("oracle_agents") and _default_options(r)}
+    plain = {(r["preset"], r["seed"], r["noise"], r["variant"]): r for r in runs if r["kind"] == "synth"}
+    cases = sorted({(p, s, n) for p, s, n, v in oracle if v == "baseline" and (p, s, n, "baseline") in plain},
+                   key=lambda c: (c[0] != "balanced", c))  # each probe beside the suite's run at its own preset
     if not cases:
         return []
 
@@ -264,9 +265,9 @@ def oracle_table(runs: list[dict]) -> list[str]:
            "Oracle AGG | Camera error baseline / oracle baseline / AGG (m) |",
            "|---|---|---|---|---|---|---|---|---|---|"]
     gains, deltas = [], []
-    for s, n in cases:
-        b, ob, ag, oa = (plain[(s, n, "baseline")], oracle[(s, n, "baseline")], plain.get((s, n, "agg")),
-                         oracle.get((s, n, "agg")))
+    for p, s, n in cases:
+        b, ob, ag, oa = (plain[(p, s, n, "baseline")], oracle[(p, s, n, "baseline")], plain.get((p, s, n, "agg")),
+                         oracle.get((p, s, n, "agg")))
         gain = ob["metrics"]["psnr"] - b["metrics"]["psnr"]
         gains.append(gain)
         delta = ag["metrics"]["psnr"] - b["metrics"]["psnr"] if ag else None
