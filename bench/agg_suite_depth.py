@@ -1,0 +1,138 @@
+"""Where the background's held-out error lies by distance, and what the agents and the cameras add to it.
+
+    python bench/agg_suite_depth.py SEED SCENE [SCENE ...] [--work bench/out/agg_suite] [--noise 1.0]
+                                    [--agent-noise 0] [--pose-fit 60]
+
+SCENE names a folder under WORK/scenes (a run of ``bench/agg_suite.py`` whose scene is still on disk) trained on the
+seed's bundle at ``--noise`` (and ``--agent-noise`` for an agent-noise probe). Only pixels outside the ground-truth
+agent masks count. For the held-out frames (cameras and agent poses interpolated as ``agg eval`` does) and for the
+training frames (their refined cameras), it prints the pooled PSNR of
+
+- the pixels in each band of ground-truth depth (0-5, 5-10, 10-20, 20-40, over 40 m, and no depth: the sky);
+- the bottom third of the image (the road nearest the camera) as rendered, rendered without the agents, and on
+  the pixels the agents do not cover (agent alpha under 0.05): the background alone;
+- the agents' mean alpha outside the agent masks (how much of the background they paint);
+
+and, with ``--pose-fit N``, the held-out PSNR after N Adam steps fit each held-out camera alone to its frame (the
+scene frozen), so a difference that survives it is the scene's and not the interpolated camera's.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from agg_suite import ROOT, load_graph  # bench/ is the script's folder, so it is on the path
+
+BANDS_M = (0.0, 5.0, 10.0, 20.0, 40.0, float("inf"))
+
+
+def _psnr(sse: float, n: float) -> float | None:
+    return None if n == 0 else round(float(-10.0 * np.log10(max(sse / n, 1e-12))), 2)
+
+
+def _fit_camera(graph, frame: int, cam: torch.Tensor, poses: dict, valid: dict, gt: torch.Tensor,
+                background: torch.Tensor, steps: int) -> torch.Tensor:
+    """The held-out camera [4, 4] after ``steps`` Adam steps on the background pixels' squared error."""
+    from kornia.geometry.liegroup import Se3
+
+    xi = torch.zeros(1, 6, requires_grad=True)  # kornia's se(3) tangent: translation, then rotation vector
+    opt = torch.optim.Adam([xi], lr=1e-3)
+    for _ in range(steps):
+        opt.zero_grad()
+        out = graph.render(frame, world_from_camera=cam @ Se3.exp(xi).matrix()[0], agent_poses=poses,
+                           agent_valid=valid)
+        ((out.color - gt) ** 2)[background].mean().backward()
+        opt.step()
+    return (cam @ Se3.exp(xi).matrix()[0]).detach()
+
+
+def depth_errors(scene_dir: Path, bundle_path: Path, pose_fit: int = 0) -> dict:
+    """{"test": {...}, "train": {...}} of one scene (see the module doc)."""
+    from agg.eval.nvs import agent_pose_tables, fit_image, held_out_overrides
+    from agg.io.bundle import SceneBundle
+
+    bundle = SceneBundle.load(bundle_path)
+    masks, depth = bundle.gt.dynamic_masks, bundle.gt.dense_depth
+    meta = json.loads((scene_dir / "scene.json").read_text())
+    train, test = sorted(meta["train_frames"]), list(meta["test_frames"])
+    graph = load_graph(scene_dir)
+    graph.eval()
+    for p in graph.parameters():
+        p.requires_grad_(False)
+    tables = agent_pose_tables(graph)
+    hidden = {tid: False for ids, _, _ in tables for tid in ids}
+    out = {}
+    for split, frames in (("test", test), ("train", train)):
+        acc: dict[str, list[float]] = {}
+
+        def add(key: str, sq: torch.Tensor, sel: torch.Tensor) -> None:
+            a = acc.setdefault(key, [0.0, 0.0])
+            a[0] += float(sq[sel].sum())
+            a[1] += float(sel.sum())
+
+        coverage = []
+        for f in frames:
+            cam, poses, valid = held_out_overrides(graph, train, f, tables) if split == "test" else (None, None, None)
+            with torch.no_grad():
+                full = graph.render(f, world_from_camera=cam, agent_poses=poses, agent_valid=valid)
+                alone = graph.render(f, world_from_camera=cam, agent_poses=poses, agent_valid=hidden)
+                node = graph.compose(f)["node"]
+                agent = (node > 0).float()[:, None].repeat(1, 3)  # [N, 3]
+                cover = graph.render(f, world_from_camera=cam, agent_poses=poses, agent_valid=valid,
+                                     colors=agent).color[..., 0]  # [H, W] agents' alpha
+            h, w = cover.shape
+            gt = fit_image(torch.as_tensor(np.array(bundle.frame(f), np.float32)), h, w)  # [H, W, 3]
+            m = fit_image(torch.as_tensor(np.array(masks[f], bool))[..., None].float(), h, w, "nearest")[..., 0]
+            d = fit_image(torch.as_tensor(np.array(depth[f], np.float32))[..., None], h, w, "nearest")[..., 0]
+            bg = m < 0.5  # [H, W]
+            sq = ((full.color.clamp(0, 1) - gt) ** 2).mean(-1)  # [H, W]
+            sq_alone = ((alone.color.clamp(0, 1) - gt) ** 2).mean(-1)
+            add("all", sq, bg)
+            for lo, hi in zip(BANDS_M[:-1], BANDS_M[1:]):
+                add(f"{lo:g}-{hi:g}m", sq, bg & (d > lo) & (d <= hi))
+            add("no_depth", sq, bg & (d <= 0))
+            near = bg.clone()
+            near[: 2 * h // 3] = False
+            add("near", sq, near)
+            add("near_without_agents", sq_alone, near)
+            add("near_uncovered", sq, near & (cover < 0.05))
+            coverage.append(float(cover[bg].mean()))
+            if split == "test" and pose_fit > 0:
+                fitted = _fit_camera(graph, f, cam, poses, valid, gt, bg, pose_fit)
+                with torch.no_grad():
+                    refit = graph.render(f, world_from_camera=fitted, agent_poses=poses, agent_valid=valid)
+                add("all_pose_fit", ((refit.color.clamp(0, 1) - gt) ** 2).mean(-1), bg)
+        out[split] = {k: _psnr(*v) for k, v in acc.items()}
+        out[split]["agent_alpha_outside"] = round(float(np.mean(coverage)), 4)
+    return out
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("seed", type=int)
+    p.add_argument("scenes", nargs="+")
+    p.add_argument("--work", default=str(ROOT / "bench" / "out" / "agg_suite"))
+    p.add_argument("--noise", type=float, default=1.0)
+    p.add_argument("--agent-noise", type=float, default=0.0)
+    p.add_argument("--pose-fit", type=int, default=0, help="Adam steps of the held-out camera fit (0: none)")
+    args = p.parse_args(argv)
+    work = Path(args.work)
+    bundle = work / "bundles" / (f"s{args.seed}_n{args.noise:g}" + (f"_a{args.agent_noise:g}" if args.agent_noise
+                                                                    else ""))
+    if not (bundle / "manifest.json").is_file():
+        raise SystemExit(f"no bundle at {bundle}: run bench/agg_suite.py for seed {args.seed} first")
+    for name in args.scenes:
+        scene = work / "scenes" / name
+        if not (scene / "model.pt").is_file():
+            raise SystemExit(f"no finished scene at {scene}")
+        print(json.dumps({"scene": name, **depth_errors(scene, bundle, args.pose_fit)}), flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
