@@ -12,6 +12,8 @@ training frames (their refined cameras), it prints the pooled PSNR of
 - the bottom third of the image (the road nearest the camera) as rendered, rendered without the agents, and on
   the pixels the agents do not cover (agent alpha under 0.05): the background alone;
 - the agents' mean alpha outside the agent masks (how much of the background they paint);
+- the median signed relative error of the rendered depth on the bottom third where the render is solid (alpha
+  over 0.5): below 0, the near road sits nearer than the truth;
 
 and, with ``--pose-fit N``, the held-out PSNR after N Adam steps fit each held-out camera alone to its frame (the
 scene frozen), so a difference that survives it is the scene's and not the interpolated camera's.
@@ -75,7 +77,7 @@ def depth_errors(scene_dir: Path, bundle_path: Path, pose_fit: int = 0) -> dict:
             a[0] += float(sq[sel].sum())
             a[1] += float(sel.sum())
 
-        coverage = []
+        coverage, depth_bias = [], []
         for f in frames:
             cam, poses, valid = held_out_overrides(graph, train, f, tables) if split == "test" else (None, None, None)
             with torch.no_grad():
@@ -102,6 +104,8 @@ def depth_errors(scene_dir: Path, bundle_path: Path, pose_fit: int = 0) -> dict:
             add("near_without_agents", sq_alone, near)
             add("near_uncovered", sq, near & (cover < 0.05))
             coverage.append(float(cover[bg].mean()))
+            solid = near & (d > 0) & (full.alpha > 0.5)
+            depth_bias.append(((full.depth[solid] - d[solid]) / d[solid]).numpy())  # relative, signed
             if split == "test" and pose_fit > 0:
                 fitted = _fit_camera(graph, f, cam, poses, valid, gt, bg, pose_fit)
                 with torch.no_grad():
@@ -109,6 +113,8 @@ def depth_errors(scene_dir: Path, bundle_path: Path, pose_fit: int = 0) -> dict:
                 add("all_pose_fit", ((refit.color.clamp(0, 1) - gt) ** 2).mean(-1), bg)
         out[split] = {k: _psnr(*v) for k, v in acc.items()}
         out[split]["agent_alpha_outside"] = round(float(np.mean(coverage)), 4)
+        bias = np.concatenate(depth_bias)
+        out[split]["near_depth_bias"] = round(float(np.median(bias)), 4) if bias.size else None
     return out
 
 
