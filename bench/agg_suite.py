@@ -47,6 +47,12 @@ VARIANTS = {"agg": "", "baseline": "all", "no-tick-tock": "tick-tock", "no-seman
             "no-topology": "topology"}
 
 
+def bundle_dir(work: Path, seed: int, noise: float, agent_noise: float = 0.0, oracle: bool = False) -> Path:
+    """Where ``synth_bundle`` keeps the bundle of these settings (the scripts that rescore scenes read it there)."""
+    return work / "bundles" / (f"s{seed}_n{noise:g}" + (f"_a{agent_noise:g}" if agent_noise else "")
+                               + ("_oracle" if oracle else ""))
+
+
 def synth_bundle(work: Path, seed: int, noise: float, frames: int, width: int, height: int,
                  agent_noise: float = 0.0, oracle: bool = False) -> Path:
     """The suite's bundle of ``seed`` with camera-centre noise ``noise`` (m); ``agent_noise`` (m, probes only) also
@@ -57,8 +63,7 @@ def synth_bundle(work: Path, seed: int, noise: float, frames: int, width: int, h
     from agg.synth.scene import SceneConfig
     from agg.synth.suite import generate, write_bundle
 
-    path = work / "bundles" / (f"s{seed}_n{noise:g}" + (f"_a{agent_noise:g}" if agent_noise else "")
-                               + ("_oracle" if oracle else ""))
+    path = bundle_dir(work, seed, noise, agent_noise, oracle)
     if not (path / "manifest.json").is_file():
         cfg = NoiseConfig(seed=seed, camera_translation_max=noise, agent_translation_max=agent_noise,
                           missed=0 if oracle else 1, false=0 if oracle else 1)

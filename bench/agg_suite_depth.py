@@ -28,13 +28,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from agg_suite import ROOT, load_graph  # bench/ is the script's folder, so it is on the path
+from agg_suite import ROOT, bundle_dir, load_graph  # bench/ is the script's folder, so it is on the path
 
 BANDS_M = (0.0, 5.0, 10.0, 20.0, 40.0, float("inf"))
-
-
-def _psnr(sse: float, n: float) -> float | None:
-    return None if n == 0 else round(float(-10.0 * np.log10(max(sse / n, 1e-12))), 2)
 
 
 def _fit_camera(graph, frame: int, cam: torch.Tensor, poses: dict, valid: dict, gt: torch.Tensor,
@@ -55,6 +51,7 @@ def _fit_camera(graph, frame: int, cam: torch.Tensor, poses: dict, valid: dict, 
 
 def depth_errors(scene_dir: Path, bundle_path: Path, pose_fit: int = 0) -> dict:
     """{"test": {...}, "train": {...}} of one scene (see the module doc)."""
+    from agg.eval.metrics import psnr_from_mse, squared_error
     from agg.eval.nvs import agent_pose_tables, fit_image, held_out_overrides
     from agg.io.bundle import SceneBundle
 
@@ -70,12 +67,13 @@ def depth_errors(scene_dir: Path, bundle_path: Path, pose_fit: int = 0) -> dict:
     hidden = {tid: False for ids, _, _ in tables for tid in ids}
     out = {}
     for split, frames in (("test", test), ("train", train)):
-        acc: dict[str, list[float]] = {}
+        acc: dict[str, list[float]] = {}  # key -> [sum of squared errors, values], pooled over the frames
 
-        def add(key: str, sq: torch.Tensor, sel: torch.Tensor) -> None:
-            a = acc.setdefault(key, [0.0, 0.0])
-            a[0] += float(sq[sel].sum())
-            a[1] += float(sel.sum())
+        def add(key: str, pred: torch.Tensor, sel: torch.Tensor) -> None:
+            sse, n = squared_error(pred.clamp(0, 1), gt, sel)  # gt: the frame of this loop iteration
+            a = acc.setdefault(key, [0.0, 0])
+            a[0] += sse
+            a[1] += n
 
         coverage, depth_bias = [], []
         for f in frames:
@@ -92,17 +90,15 @@ def depth_errors(scene_dir: Path, bundle_path: Path, pose_fit: int = 0) -> dict:
             m = fit_image(torch.as_tensor(np.array(masks[f], bool))[..., None].float(), h, w, "nearest")[..., 0]
             d = fit_image(torch.as_tensor(np.array(depth[f], np.float32))[..., None], h, w, "nearest")[..., 0]
             bg = m < 0.5  # [H, W]
-            sq = ((full.color.clamp(0, 1) - gt) ** 2).mean(-1)  # [H, W]
-            sq_alone = ((alone.color.clamp(0, 1) - gt) ** 2).mean(-1)
-            add("all", sq, bg)
+            add("all", full.color, bg)
             for lo, hi in zip(BANDS_M[:-1], BANDS_M[1:]):
-                add(f"{lo:g}-{hi:g}m", sq, bg & (d > lo) & (d <= hi))
-            add("no_depth", sq, bg & (d <= 0))
+                add(f"{lo:g}-{hi:g}m", full.color, bg & (d > lo) & (d <= hi))
+            add("no_depth", full.color, bg & (d <= 0))
             near = bg.clone()
             near[: 2 * h // 3] = False
-            add("near", sq, near)
-            add("near_without_agents", sq_alone, near)
-            add("near_uncovered", sq, near & (cover < 0.05))
+            add("near", full.color, near)
+            add("near_without_agents", alone.color, near)
+            add("near_uncovered", full.color, near & (cover < 0.05))
             coverage.append(float(cover[bg].mean()))
             solid = near & (d > 0) & (full.alpha > 0.5)
             depth_bias.append(((full.depth[solid] - d[solid]) / d[solid]).numpy())  # relative, signed
@@ -110,8 +106,8 @@ def depth_errors(scene_dir: Path, bundle_path: Path, pose_fit: int = 0) -> dict:
                 fitted = _fit_camera(graph, f, cam, poses, valid, gt, bg, pose_fit)
                 with torch.no_grad():
                     refit = graph.render(f, world_from_camera=fitted, agent_poses=poses, agent_valid=valid)
-                add("all_pose_fit", ((refit.color.clamp(0, 1) - gt) ** 2).mean(-1), bg)
-        out[split] = {k: _psnr(*v) for k, v in acc.items()}
+                add("all_pose_fit", refit.color, bg)
+        out[split] = {k: None if n == 0 else round(psnr_from_mse(sse / n), 2) for k, (sse, n) in acc.items()}
         out[split]["agent_alpha_outside"] = round(float(np.mean(coverage)), 4)
         bias = np.concatenate(depth_bias)
         out[split]["near_depth_bias"] = round(float(np.median(bias)), 4) if bias.size else None
@@ -128,8 +124,7 @@ def main(argv=None) -> int:
     p.add_argument("--pose-fit", type=int, default=0, help="Adam steps of the held-out camera fit (0: none)")
     args = p.parse_args(argv)
     work = Path(args.work)
-    bundle = work / "bundles" / (f"s{args.seed}_n{args.noise:g}" + (f"_a{args.agent_noise:g}" if args.agent_noise
-                                                                    else ""))
+    bundle = bundle_dir(work, args.seed, args.noise, args.agent_noise)
     if not (bundle / "manifest.json").is_file():
         raise SystemExit(f"no bundle at {bundle}: run bench/agg_suite.py for seed {args.seed} first")
     for name in args.scenes:

@@ -26,7 +26,7 @@ import cv2
 import numpy as np
 import torch
 
-from agg_suite import ROOT, load_graph  # bench/ is the script's folder, so it is on the path
+from agg_suite import ROOT, bundle_dir, load_graph  # bench/ is the script's folder, so it is on the path
 
 PATH_RADIUS_M = 2.5
 
@@ -91,7 +91,7 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     work = Path(args.work)
     for name in args.scenes:
-        sets = region_errors(work / "scenes" / name, work / "bundles" / f"s{args.seed}_n{args.noise:g}")
+        sets = region_errors(work / "scenes" / name, bundle_dir(work, args.seed, args.noise))
         sse, n = sum(m * c for m, c in sets.values()), sum(c for _, c in sets.values())
         print(f"{name}: pooled {-10 * np.log10(sse / n):.2f} dB;", "; ".join(
             f"{k} {-10 * np.log10(max(m, 1e-12)):.2f} dB ({100 * c / n:.1f} % px, {100 * m * c / sse:.1f} % err)"
