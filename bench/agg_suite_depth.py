@@ -51,18 +51,25 @@ def _fit_camera(graph, frame: int, cam: torch.Tensor, poses: dict, valid: dict, 
 
 def depth_errors(scene_dir: Path, bundle_path: Path, pose_fit: int = 0) -> dict:
     """{"test": {...}, "train": {...}} of one scene (see the module doc)."""
-    from agg.eval.metrics import psnr_from_mse, squared_error
-    from agg.eval.nvs import agent_pose_tables, fit_image, held_out_overrides
     from agg.io.bundle import SceneBundle
 
-    bundle = SceneBundle.load(bundle_path)
-    masks, depth = bundle.gt.dynamic_masks, bundle.gt.dense_depth
     meta = json.loads((scene_dir / "scene.json").read_text())
-    train, test = sorted(meta["train_frames"]), list(meta["test_frames"])
     graph = load_graph(scene_dir)
     graph.eval()
     for p in graph.parameters():
         p.requires_grad_(False)
+    return graph_depth_errors(graph, SceneBundle.load(bundle_path), sorted(meta["train_frames"]),
+                              list(meta["test_frames"]), pose_fit)
+
+
+def graph_depth_errors(graph, bundle, train: list[int], test: list[int], pose_fit: int = 0,
+                       bands_only: bool = False) -> dict:
+    """``depth_errors`` of a graph in memory (e.g. one still training: ``bench/agg_suite_curve.py``);
+    ``bands_only`` skips the renders without the agents and of their alpha (the near-road and alpha scores)."""
+    from agg.eval.metrics import psnr_from_mse, squared_error
+    from agg.eval.nvs import agent_pose_tables, fit_image, held_out_overrides
+
+    masks, depth = bundle.gt.dynamic_masks, bundle.gt.dense_depth
     tables = agent_pose_tables(graph)
     hidden = {tid: False for ids, _, _ in tables for tid in ids}
     out = {}
@@ -80,12 +87,7 @@ def depth_errors(scene_dir: Path, bundle_path: Path, pose_fit: int = 0) -> dict:
             cam, poses, valid = held_out_overrides(graph, train, f, tables) if split == "test" else (None, None, None)
             with torch.no_grad():
                 full = graph.render(f, world_from_camera=cam, agent_poses=poses, agent_valid=valid)
-                alone = graph.render(f, world_from_camera=cam, agent_poses=poses, agent_valid=hidden)
-                node = graph.compose(f)["node"]
-                agent = (node > 0).float()[:, None].repeat(1, 3)  # [N, 3]
-                cover = graph.render(f, world_from_camera=cam, agent_poses=poses, agent_valid=valid,
-                                     colors=agent).color[..., 0]  # [H, W] agents' alpha
-            h, w = cover.shape
+            h, w = full.color.shape[:2]
             gt = fit_image(torch.as_tensor(np.array(bundle.frame(f), np.float32)), h, w)  # [H, W, 3]
             m = fit_image(torch.as_tensor(np.array(masks[f], bool))[..., None].float(), h, w, "nearest")[..., 0]
             d = fit_image(torch.as_tensor(np.array(depth[f], np.float32))[..., None], h, w, "nearest")[..., 0]
@@ -97,18 +99,25 @@ def depth_errors(scene_dir: Path, bundle_path: Path, pose_fit: int = 0) -> dict:
             near = bg.clone()
             near[: 2 * h // 3] = False
             add("near", full.color, near)
-            add("near_without_agents", alone.color, near)
-            add("near_uncovered", full.color, near & (cover < 0.05))
-            coverage.append(float(cover[bg].mean()))
             solid = near & (d > 0) & (full.alpha > 0.5)
             depth_bias.append(((full.depth[solid] - d[solid]) / d[solid]).numpy())  # relative, signed
+            if not bands_only:
+                with torch.no_grad():
+                    alone = graph.render(f, world_from_camera=cam, agent_poses=poses, agent_valid=hidden)
+                    agent = (graph.compose(f)["node"] > 0).float()[:, None].repeat(1, 3)  # [N, 3]
+                    cover = graph.render(f, world_from_camera=cam, agent_poses=poses, agent_valid=valid,
+                                         colors=agent).color[..., 0]  # [H, W] agents' alpha
+                add("near_without_agents", alone.color, near)
+                add("near_uncovered", full.color, near & (cover < 0.05))
+                coverage.append(float(cover[bg].mean()))
             if split == "test" and pose_fit > 0:
                 fitted = _fit_camera(graph, f, cam, poses, valid, gt, bg, pose_fit)
                 with torch.no_grad():
                     refit = graph.render(f, world_from_camera=fitted, agent_poses=poses, agent_valid=valid)
                 add("all_pose_fit", refit.color, bg)
         out[split] = {k: None if n == 0 else round(psnr_from_mse(sse / n), 2) for k, (sse, n) in acc.items()}
-        out[split]["agent_alpha_outside"] = round(float(np.mean(coverage)), 4)
+        if coverage:
+            out[split]["agent_alpha_outside"] = round(float(np.mean(coverage)), 4)
         bias = np.concatenate(depth_bias)
         out[split]["near_depth_bias"] = round(float(np.median(bias)), 4) if bias.size else None
     return out

@@ -161,6 +161,19 @@ def test_the_densifier_reads_the_photometric_gradient_and_the_parameters_the_who
         replace(get_preset("tiny"), densify_grad="sem")
 
 
+def test_opacity_reset_can_be_switched_off_without_moving_size_pruning(bundle):
+    on, off = _trainer(bundle, iterations=1200), _trainer(bundle, iterations=1200, opacity_reset=False)
+    assert on.densifier.config.is_reset(500)  # the 500-iteration floor, before refine_stop (600)
+    assert not any(off.densifier.config.is_reset(i) for i in range(1, 1200))
+    assert off.densifier.config.size_prune_start == on.densifier.config.size_prune_start
+    top = float(torch.sigmoid(off.graph.background.opacity_logits).max())
+    for tr in (on, off):  # iteration 500 refines too (pruning only the least opaque rows) and, when on, resets
+        tr.densifier.step("background", tr.graph.background, tr.optimizers["static"], 500)
+    assert float(torch.sigmoid(off.graph.background.opacity_logits).max()) == pytest.approx(top)
+    clamp = 2 * on.densifier.config.prune_opacity  # 3DGS's reset value
+    assert float(torch.sigmoid(on.graph.background.opacity_logits).max()) <= clamp + 1e-6
+
+
 def test_an_optimiser_step_in_tick_leaves_agents_bit_identical(bundle):
     tr = _trainer(bundle, iterations=30, ablate=frozenset({"topology"}))
     tr.iteration = tr.schedule.warmup  # first Tick iteration

@@ -71,6 +71,7 @@ class TrainConfig:
     densify_until: int = 15_000
     densify_every: int = 100
     opacity_reset_every: int = 3_000
+    opacity_reset: bool = True  # False: no opacity reset (size pruning still starts at opacity_reset_every)
     grad_threshold: float = 2e-4
     densify_grad: str = "photo"  # what the densifier's screen gradient is of: "photo" (L_photo) | "total" (+ L_sem)
     agent_box_margin: float | None = 0.25  # agents' canonical means stay in their box grown by this fraction of its

@@ -82,7 +82,8 @@ class Trainer:
                              size_prune_start=cfg.opacity_reset_every, seed=cfg.seed).scaled(cfg.scale)
         # refine statistics need several views per refine, and opacity needs time to recover after a reset:
         # short presets keep the paper's proportions but not periods below these floors
-        dcfg = replace(dcfg, refine_every=max(dcfg.refine_every, 20), reset_every=max(dcfg.reset_every, 500))
+        dcfg = replace(dcfg, refine_every=max(dcfg.refine_every, 20),
+                       reset_every=max(dcfg.reset_every, 500) if cfg.opacity_reset else 0)
         self.densifier = Densifier(dcfg, self.extent) if cfg.densify else None
         self.topology = self._make_topology() if cfg.topology else None
         self.tracking = cfg.tracking.scaled(cfg.scale) if cfg.tracking is not None else None
