@@ -139,6 +139,23 @@ def test_tick_tock_raises_agent_pose_translations_and_leaves_their_rotations_at_
     assert kept["rigid#means"] == pytest.approx(on["rigid#means"])
 
 
+def test_boost_in_warmup_off_keeps_omnires_agent_rates_until_the_first_tick(bundle):
+    def rates(tr, iteration):
+        tr.iteration = iteration
+        tr.set_lrs(tr.schedule.phase(iteration))
+        return {grp["name"]: grp["lr"] for opt in tr.optimizers.values() for grp in opt.param_groups}
+
+    on = _trainer(bundle, iterations=300)
+    off = _trainer(bundle, iterations=300, lr=replace(on.cfg.lr, boost_in_warmup=False))
+    boost, first_tick = on.cfg.lr.agent_boost, on.schedule.warmup
+    warm_on, warm_off = rates(on, 0), rates(off, 0)
+    for name in ("rigid#means", "rigid#tau", "rigid#rate", "nonrigid#means", "nonrigid#tau"):
+        assert warm_off[name] == pytest.approx(warm_on[name] / boost)
+    for name in ("rigid#omega", "rigid#sh", "nonrigid#deform", "background#means", "camera#tau"):
+        assert warm_off[name] == pytest.approx(warm_on[name])
+    assert rates(off, first_tick) == pytest.approx(rates(on, first_tick))  # boosted from the first Tick on
+
+
 def test_the_densifier_reads_the_photometric_gradient_and_the_parameters_the_whole_loss(bundle):
     tick = Phase("tick", frozenset({"camera", "static"}), 1.0, "bg")
 

@@ -43,6 +43,8 @@ class LearningRates:
     deform: float = 1e-3
     agent_boost: float = 10.0
     agent_boost_ablated: float = 1.0  # the boost with Tick-Tock ablated: OmniRe's rates (a probe can keep x10)
+    boost_in_warmup: bool = True  # False: the warm-up (everything trains, nothing decoupled) keeps OmniRe's
+    # agent rates and the boost starts with the first Tick
     joint_decay: float = 0.1  # camera and agent rates x this in the joint phase (the background's keep their own)
 
 

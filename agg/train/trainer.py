@@ -32,6 +32,7 @@ from agg.train.losses import photometric_loss, semantic_attention_loss
 from agg.train.tick_tock import GROUPS, TickTockSchedule, set_trainable
 
 # what the topology log keeps of each evolution's report
+BOOSTED = ("means", "tau", "rate")  # the agent parameter groups whose rates agent_boost raises
 LOG_KEYS = ("iteration", "candidates", "clusters", "tracks", "track_runs", "floating", "silhouette", "reassigned",
             "spawned", "pruned", "demoted", "reanchored")
 
@@ -144,9 +145,12 @@ class Trainer:
             rotation_lr = lr.agent_rotation * pose_scale  # never raised (the paper raises translations only)
             rate_lr = lr.agent_track_rate * boost * pose_scale  # dimensionless: no scene-unit factor
             if name == "nonrigid":
-                out["agents"] += node.param_groups(name, lrs, pose_lr, lr.deform, rotation_lr, rate_lr)
+                groups = node.param_groups(name, lrs, pose_lr, lr.deform, rotation_lr, rate_lr)
             else:
-                out["agents"] += node.param_groups(name, lrs, pose_lr, rotation_lr, rate_lr)
+                groups = node.param_groups(name, lrs, pose_lr, rotation_lr, rate_lr)
+            for grp in groups:
+                grp["boost"] = boost if grp["name"].split("#")[1] in BOOSTED else 1.0
+            out["agents"] += groups
         for groups in out.values():
             for grp in groups:
                 grp["base_lr"] = grp["lr"]
@@ -185,10 +189,13 @@ class Trainer:
         lr = self.cfg.lr
         t = min(self.iteration / max(self.cfg.iterations, 1), 1.0)
         decay = (lr.means_final / lr.means) ** t  # exponential means decay (3DGS)
+        unboost = phase.name == "warmup" and not lr.boost_in_warmup
         for name, opt in self.optimizers.items():
             factor = phase.lr_factor_of(name)
             for grp in opt.param_groups:
                 f = factor * (decay if grp["name"].endswith("#means") else 1.0)
+                if unboost:
+                    f /= grp.get("boost", 1.0)
                 grp["lr"] = grp["base_lr"] * f
 
     def trainable_groups(self, phase) -> set:
