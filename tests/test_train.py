@@ -139,7 +139,7 @@ def test_tick_tock_raises_agent_pose_translations_and_leaves_their_rotations_at_
     assert kept["rigid#means"] == pytest.approx(on["rigid#means"])
 
 
-def test_boost_in_warmup_off_keeps_omnires_agent_rates_until_the_first_tick(bundle):
+def test_the_warmup_can_keep_omnires_agent_rates_all_or_for_the_poses_only(bundle):
     def rates(tr, iteration):
         tr.iteration = iteration
         tr.set_lrs(tr.schedule.phase(iteration))
@@ -154,6 +154,13 @@ def test_boost_in_warmup_off_keeps_omnires_agent_rates_until_the_first_tick(bund
     for name in ("rigid#omega", "rigid#sh", "nonrigid#deform", "background#means", "camera#tau"):
         assert warm_off[name] == pytest.approx(warm_on[name])
     assert rates(off, first_tick) == pytest.approx(rates(on, first_tick))  # boosted from the first Tick on
+    poses = _trainer(bundle, iterations=300, lr=replace(on.cfg.lr, warmup_pose_boost=False))
+    warm_poses = rates(poses, 0)  # the means boosted, the pose translations and track rates not
+    for node in ("rigid", "nonrigid"):
+        assert warm_poses[f"{node}#means"] == pytest.approx(warm_on[f"{node}#means"])
+        assert warm_poses[f"{node}#tau"] == pytest.approx(warm_on[f"{node}#tau"] / boost)
+        assert warm_poses[f"{node}#rate"] == pytest.approx(warm_on[f"{node}#rate"] / boost)
+    assert rates(poses, first_tick) == pytest.approx(rates(on, first_tick))
 
 
 def test_the_densifier_reads_the_photometric_gradient_and_the_parameters_the_whole_loss(bundle):

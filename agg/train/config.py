@@ -45,6 +45,8 @@ class LearningRates:
     agent_boost_ablated: float = 1.0  # the boost with Tick-Tock ablated: OmniRe's rates (a probe can keep x10)
     boost_in_warmup: bool = True  # False: the warm-up (everything trains, nothing decoupled) keeps OmniRe's
     # agent rates and the boost starts with the first Tick
+    warmup_pose_boost: bool = True  # False: the warm-up keeps OmniRe's pose-translation and track-rate rates
+    # while the agent means stay boosted (with boost_in_warmup on)
     joint_decay: float = 0.1  # camera and agent rates x this in the joint phase (the background's keep their own)
 
 

@@ -189,12 +189,15 @@ class Trainer:
         lr = self.cfg.lr
         t = min(self.iteration / max(self.cfg.iterations, 1), 1.0)
         decay = (lr.means_final / lr.means) ** t  # exponential means decay (3DGS)
-        unboost = phase.name == "warmup" and not lr.boost_in_warmup
+        warmup = phase.name == "warmup"
+        unboost = warmup and not lr.boost_in_warmup  # every boosted group at OmniRe's rate
+        unboost_poses = warmup and not lr.warmup_pose_boost  # the pose groups only
         for name, opt in self.optimizers.items():
             factor = phase.lr_factor_of(name)
             for grp in opt.param_groups:
-                f = factor * (decay if grp["name"].endswith("#means") else 1.0)
-                if unboost:
+                means = grp["name"].endswith("#means")
+                f = factor * (decay if means else 1.0)
+                if unboost or (unboost_poses and not means):
                     f /= grp.get("boost", 1.0)
                 grp["lr"] = grp["base_lr"] * f
 
