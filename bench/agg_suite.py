@@ -189,17 +189,18 @@ def refined_alignment(graph, scene_dir: Path, bundle_path: Path):
 def camera_scores(graph, scene_dir: Path, bundle_path: Path) -> dict:
     """Camera-centre error against ground truth (metres) of the priors and of the refined cameras, over the
     training frames: mean, median, max, and ``sim3_mean_m`` after the Sim(3) alignment of the training cameras
-    to ground truth (what is left once a drift of the whole trajectory and map together is taken out)."""
+    to ground truth (what is left once a drift of the whole trajectory and map together is taken out), whose scale
+    (ground truth per scene unit) is ``sim3_scale``."""
     from agg.eval.trajectory import align_sim3
 
     prior, refined, gt = _training_cameras(graph, scene_dir, bundle_path)
     out = {}
     for name, p in (("prior", prior), ("refined", refined)):
         e = np.linalg.norm(p[:, :3, 3] - gt[:, :3, 3], axis=1)
-        aligned = align_sim3(p, gt).apply_to_poses(p)
-        ea = np.linalg.norm(aligned[:, :3, 3] - gt[:, :3, 3], axis=1)
+        sim = align_sim3(p, gt)
+        ea = np.linalg.norm(sim.apply_to_poses(p)[:, :3, 3] - gt[:, :3, 3], axis=1)
         out[name] = {"mean_m": float(e.mean()), "median_m": float(np.median(e)), "max_m": float(e.max()),
-                     "sim3_mean_m": float(ea.mean())}
+                     "sim3_mean_m": float(ea.mean()), "sim3_scale": float(sim.scale)}
     return out
 
 

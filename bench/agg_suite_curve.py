@@ -21,7 +21,7 @@ import importlib
 import json
 from pathlib import Path
 
-from agg_suite import ROOT, VARIANTS, camera_scores, probe_config, refined_alignment, synth_bundle  # bench/ is the script's folder
+from agg_suite import ROOT, VARIANTS, camera_scores, probe_config, synth_bundle  # bench/ is the script's folder
 from agg_suite_depth import graph_depth_errors
 
 
@@ -54,7 +54,7 @@ def train_with_curve(bundle_path: Path, scene_dir: Path, cfg, ablate: str, every
         cams = camera_scores(t.graph, scene_dir, bundle_path)["refined"]
         row = {"iteration": it, "phase": event["phase"], "n_background": len(t.graph.background),
                "camera_m": round(cams["mean_m"], 4), "camera_sim3_m": round(cams["sim3_mean_m"], 4),
-               "sim3_scale": round(float(refined_alignment(t.graph, scene_dir, bundle_path).scale), 4),
+               "sim3_scale": round(cams["sim3_scale"], 4),
                **graph_depth_errors(t.graph, bundle, t.data.train_frames, t.data.test_frames, bands_only=True)}
         rows.append(row)
         if out_path is not None:
