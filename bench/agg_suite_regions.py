@@ -1,6 +1,6 @@
 """Where the held-out error of finished suite scenes lies, split by the missed car's path.
 
-    python bench/agg_suite_regions.py SEED SCENE [SCENE ...] [--work bench/out/agg_suite] [--noise 1.0]
+    python bench/agg_suite_regions.py SEED SCENE [SCENE ...] [--work bench/out/agg_suite] [--noise 1.0] [--per-agent]
 
 SCENE names a folder under WORK/scenes (a run of ``bench/agg_suite.py`` whose scene is still on disk) trained on the
 seed's bundle at ``--noise`` (an ``--oracle-agents`` probe's scene shows the same frames: its bundle differs only in
@@ -13,7 +13,8 @@ the training frames) and its squared error is pooled over four sets of pixels, f
   centre's depth, projected into the frame's true camera): where a background that explains the car leaves it;
 - *rest*: every other pixel.
 
-Prints, per scene, the pooled PSNR of each set, its share of the pixels and its share of the squared error.
+Prints, per scene, the pooled PSNR of each set, its share of the pixels and its share of the squared error;
+``--per-agent`` adds each ground-truth agent's pixels ("agent ID", a subset of the two agent sets).
 """
 
 from __future__ import annotations
@@ -47,8 +48,9 @@ def path_mask(world_from_agent: np.ndarray, camera_from_world: np.ndarray, K: np
     return out > 0
 
 
-def region_errors(scene_dir: Path, bundle_path: Path) -> dict:
-    """{set: (pooled MSE, pixels)} over the held-out frames of one scene (sets as in the module doc)."""
+def region_errors(scene_dir: Path, bundle_path: Path, per_agent: bool = False) -> dict:
+    """{set: (pooled MSE, pixels)} over the held-out frames of one scene (sets as in the module doc); with
+    ``per_agent`` also one set per ground-truth agent id ("agent ID"), which the two agent sets already hold."""
     from agg.eval.nvs import agent_pose_tables, fit_image, held_out_overrides
     from agg.io.bundle import SceneBundle
     from agg.synth.suite import load_gt_extras
@@ -63,6 +65,7 @@ def region_errors(scene_dir: Path, bundle_path: Path) -> dict:
     graph.eval()
     tables = agent_pose_tables(graph)
     acc = {k: [0.0, 0] for k in ("missed car", "other agents", "path", "rest")}
+    extra: dict[str, list] = {}  # per-agent sets (overlap the agent sets above)
     for f in test:
         with torch.no_grad():
             cam, poses, valid = held_out_overrides(graph, train, f, tables)
@@ -79,6 +82,11 @@ def region_errors(scene_dir: Path, bundle_path: Path) -> dict:
                         ("rest", ~(on_car | on_agents | on_path))):
             acc[name][0] += float(err[m].sum())
             acc[name][1] += int(m.sum())
+        for a in np.unique(inst[inst > 0]) if per_agent else ():
+            cell = extra.setdefault(f"agent {a}", [0.0, 0])
+            cell[0] += float(err[inst == a].sum())
+            cell[1] += int((inst == a).sum())
+    acc.update(sorted(extra.items(), key=lambda kv: int(kv[0].split()[1])))
     return {k: (v[0] / max(v[1], 1), v[1]) for k, v in acc.items()}
 
 
@@ -88,11 +96,13 @@ def main(argv=None) -> int:
     p.add_argument("scenes", nargs="+")
     p.add_argument("--work", default=str(ROOT / "bench" / "out" / "agg_suite"))
     p.add_argument("--noise", type=float, default=1.0)
+    p.add_argument("--per-agent", action="store_true", help="also each ground-truth agent's pixels (by id)")
     args = p.parse_args(argv)
     work = Path(args.work)
     for name in args.scenes:
-        sets = region_errors(work / "scenes" / name, bundle_dir(work, args.seed, args.noise))
-        sse, n = sum(m * c for m, c in sets.values()), sum(c for _, c in sets.values())
+        sets = region_errors(work / "scenes" / name, bundle_dir(work, args.seed, args.noise), args.per_agent)
+        disjoint = {k: v for k, v in sets.items() if not k.startswith("agent ")}
+        sse, n = sum(m * c for m, c in disjoint.values()), sum(c for _, c in disjoint.values())
         print(f"{name}: pooled {-10 * np.log10(sse / n):.2f} dB;", "; ".join(
             f"{k} {-10 * np.log10(max(m, 1e-12)):.2f} dB ({100 * c / n:.1f} % px, {100 * m * c / sse:.1f} % err)"
             for k, (m, c) in sets.items()), flush=True)
