@@ -17,6 +17,7 @@ from agg.synth.suite import generate, write_bundle
 from agg.train.camera_tracking import TrackingConfig
 from agg.train.config import get_preset
 from agg.train.data import load_train_data
+from agg.train.losses import photometric_loss
 from agg.train.tick_tock import Phase, TickTockSchedule
 from agg.train.trainer import Cancelled, Trainer, seed_everything
 
@@ -113,6 +114,32 @@ def test_tick_gives_exactly_zero_gradient_to_agents_and_tock_to_camera_and_backg
     assert all(any(p.grad is not None and p.grad.abs().sum() > 0 for p in groups[n]) for n in everything)
 
 
+def test_a_tick_agent_mask_leaves_the_pixels_of_the_frozen_agents_out_of_the_photometric_loss(bundle):
+    tick = Phase("tick", frozenset({"camera", "static"}), 1.0, "bg")
+    tr = _trainer(bundle, ablate=frozenset({"topology", "semantic"}), tick_agent_mask=True)
+    w = tr._static_weight(3, tick)  # [H, W]
+    assert w is not None and w.shape == tr.data.images[3].shape[:2]
+    assert float(w.min()) < 0.1 and float(w.max()) == pytest.approx(1.0)  # agents cover some pixels, not all
+    assert tr._static_weight(3, Phase("tock", frozenset({"agents"}), 1.0, "ag")) is None
+    loss, _, out = tr.forward_backward(3, tick)
+    assert all(p.grad is None for p in tr.group_params()["agents"])  # still exactly zero for the agents
+    with torch.no_grad():
+        weighted = photometric_loss(out.color, tr.data.images[3], tr.cfg.ssim_weight, w)
+    assert float(loss.detach()) == pytest.approx(float(weighted))
+    # the weighted loss is a weighted mean: pixels of weight 0 do not count, weight 1 everywhere is the plain loss
+    pred, gt = out.color.detach(), tr.data.images[3]
+    half = torch.zeros_like(w)
+    half[:, : w.shape[1] // 2] = 1.0
+    flipped = gt.clone()
+    flipped[:, w.shape[1] // 2:] = 1.0 - flipped[:, w.shape[1] // 2:]
+    masked = [float(photometric_loss(pred, target, 0.0, half)) for target in (gt, flipped)]
+    assert masked[0] == pytest.approx(masked[1])
+    plain = float(photometric_loss(pred, gt))
+    assert float(photometric_loss(pred, gt, tr.cfg.ssim_weight, torch.ones_like(w))) == pytest.approx(plain)
+    off = _trainer(bundle, ablate=frozenset({"topology", "semantic"}))
+    assert off._static_weight(3, tick) is None
+
+
 def test_tick_tock_raises_agent_pose_translations_and_leaves_their_rotations_at_omnires_rate(bundle):
     """Sec. 4.2 raises the agent means and pose translations ×10 under Tick-Tock; rotations keep 1e-5 either way
     (boosted, the true agents' rotations ended a median 3–4° off with exact priors, against 1.1° in the baseline)."""
@@ -139,7 +166,7 @@ def test_tick_tock_raises_agent_pose_translations_and_leaves_their_rotations_at_
     assert kept["rigid#means"] == pytest.approx(on["rigid#means"])
 
 
-def test_the_warmup_can_keep_omnires_agent_rates_all_or_for_the_poses_only(bundle):
+def test_the_warmup_can_keep_omnires_agent_rates_all_or_for_the_poses_or_the_means_only(bundle):
     def rates(tr, iteration):
         tr.iteration = iteration
         tr.set_lrs(tr.schedule.phase(iteration))
@@ -161,6 +188,14 @@ def test_the_warmup_can_keep_omnires_agent_rates_all_or_for_the_poses_only(bundl
         assert warm_poses[f"{node}#tau"] == pytest.approx(warm_on[f"{node}#tau"] / boost)
         assert warm_poses[f"{node}#rate"] == pytest.approx(warm_on[f"{node}#rate"] / boost)
     assert rates(poses, first_tick) == pytest.approx(rates(on, first_tick))
+    means = _trainer(bundle, iterations=300, lr=replace(on.cfg.lr, warmup_means_boost=False))
+    warm_means = rates(means, 0)  # the pose translations and track rates boosted, the means not
+    for node in ("rigid", "nonrigid"):
+        assert warm_means[f"{node}#means"] == pytest.approx(warm_on[f"{node}#means"] / boost)
+        assert warm_means[f"{node}#tau"] == pytest.approx(warm_on[f"{node}#tau"])
+        assert warm_means[f"{node}#rate"] == pytest.approx(warm_on[f"{node}#rate"])
+    assert warm_means["background#means"] == pytest.approx(warm_on["background#means"])
+    assert rates(means, first_tick) == pytest.approx(rates(on, first_tick))
 
 
 def test_the_densifier_reads_the_photometric_gradient_and_the_parameters_the_whole_loss(bundle):
@@ -190,7 +225,7 @@ def test_opacity_reset_can_be_switched_off_without_moving_size_pruning(bundle):
     assert on.densifier.config.is_reset(500)  # the 500-iteration floor, before refine_stop (600)
     assert not any(off.densifier.config.is_reset(i) for i in range(1, 1200))
     assert off.densifier.config.size_prune_start == on.densifier.config.size_prune_start
-    top = float(torch.sigmoid(off.graph.background.opacity_logits).max())
+    top = float(torch.sigmoid(off.graph.background.opacity_logits.detach()).max())
     for tr in (on, off):  # iteration 500 refines too (pruning only the least opaque rows) and, when on, resets
         tr.densifier.step("background", tr.graph.background, tr.optimizers["static"], 500)
     assert float(torch.sigmoid(off.graph.background.opacity_logits).max()) == pytest.approx(top)

@@ -47,6 +47,8 @@ class LearningRates:
     # agent rates and the boost starts with the first Tick
     warmup_pose_boost: bool = True  # False: the warm-up keeps OmniRe's pose-translation and track-rate rates
     # while the agent means stay boosted (with boost_in_warmup on)
+    warmup_means_boost: bool = True  # False: the warm-up keeps OmniRe's agent-means rate while the pose
+    # translations and track rates stay boosted (with boost_in_warmup on)
     joint_decay: float = 0.1  # camera and agent rates x this in the joint phase (the background's keep their own)
 
 
@@ -63,6 +65,8 @@ class TrainConfig:
     warmup: int = 5_000
     alternate: int = 1_000
     tick_share: float = 0.5  # share of each Tick + Tock cycle spent in the Tick (paper: 0.5, equal halves)
+    tick_agent_mask: bool = False  # True: a Tick's L_photo leaves out the pixels the frozen agents cover (weight
+    # 1 - their rendered alpha), so the camera and background learn from the static pixels only
     joint: int = 20_000
     # losses
     ssim_weight: float = 0.2

@@ -19,12 +19,20 @@ def ssim_value(pred: Tensor, gt: Tensor, window: int = 11) -> Tensor:
     return kornia_ssim(pred.permute(2, 0, 1)[None], gt.permute(2, 0, 1)[None], window).mean()
 
 
-def photometric_loss(pred: Tensor, gt: Tensor, ssim_weight: float = 0.2) -> Tensor:
-    """(1 - w) * L1 + w * (1 - SSIM) of [H, W, 3] images (3DGS's form of "L1 plus SSIM at weight w")."""
-    l1 = (pred - gt).abs().mean()
+def photometric_loss(pred: Tensor, gt: Tensor, ssim_weight: float = 0.2, weight: Tensor | None = None) -> Tensor:
+    """(1 - w) * L1 + w * (1 - SSIM) of [H, W, 3] images (3DGS's form of "L1 plus SSIM at weight w").
+    ``weight`` [H, W] >= 0 makes both terms weighted means over the pixels (the SSIM map's, 11x11 window)."""
+    if weight is None:
+        l1 = (pred - gt).abs().mean()
+        if ssim_weight <= 0:
+            return l1
+        return (1.0 - ssim_weight) * l1 + ssim_weight * (1.0 - ssim_value(pred, gt))
+    mass = weight.sum().clamp_min(1e-6)
+    l1 = ((pred - gt).abs().mean(-1) * weight).sum() / mass
     if ssim_weight <= 0:
         return l1
-    return (1.0 - ssim_weight) * l1 + ssim_weight * (1.0 - ssim_value(pred, gt))
+    ssim_map = kornia_ssim(pred.permute(2, 0, 1)[None], gt.permute(2, 0, 1)[None], 11)[0].mean(0)  # [H, W]
+    return (1.0 - ssim_weight) * l1 + ssim_weight * (1.0 - (ssim_map * weight).sum() / mass)
 
 
 def semantic_attention_loss(pred: Tensor, gt: Tensor, attention: Tensor, lambda_sem: float = 0.8,

@@ -192,12 +192,13 @@ class Trainer:
         warmup = phase.name == "warmup"
         unboost = warmup and not lr.boost_in_warmup  # every boosted group at OmniRe's rate
         unboost_poses = warmup and not lr.warmup_pose_boost  # the pose groups only
+        unboost_means = warmup and not lr.warmup_means_boost  # the agent means only
         for name, opt in self.optimizers.items():
             factor = phase.lr_factor_of(name)
             for grp in opt.param_groups:
                 means = grp["name"].endswith("#means")
                 f = factor * (decay if means else 1.0)
-                if unboost or (unboost_poses and not means):
+                if unboost or (unboost_poses and not means) or (unboost_means and means):
                     f /= grp.get("boost", 1.0)
                 grp["lr"] = grp["base_lr"] * f
 
@@ -216,7 +217,7 @@ class Trainer:
         out = self.graph.render(frame)
         if self.densifier is not None and out.meta.means2d.requires_grad:
             out.meta.means2d.retain_grad()
-        photo = photometric_loss(out.color, gt, cfg.ssim_weight)
+        photo = photometric_loss(out.color, gt, cfg.ssim_weight, self._static_weight(frame, phase))
         loss, sem = photo, None
         if cfg.semantic and phase.attention is not None and data.m_bg is not None:
             m = (data.m_bg if phase.attention == "bg" else data.m_ag)[frame]
@@ -234,6 +235,15 @@ class Trainer:
         else:
             loss.backward()
         return loss, sem, out
+
+    def _static_weight(self, frame: int, phase) -> torch.Tensor | None:
+        """[H, W] 1 - the frozen agents' rendered alpha in a Tick with ``tick_agent_mask`` on, else None."""
+        if not self.cfg.tick_agent_mask or phase.name != "tick" or self.graph.num_agents == 0:
+            return None
+        with torch.no_grad():
+            node = self.graph.compose(frame)["node"]  # [N] 0: background / sky, k > 0: agent instance
+            out = self.graph.render(frame, colors=(node > 0).float()[:, None])
+        return (1.0 - out.color[..., 0]).clamp(0.0, 1.0)
 
     def _densify_reads_photo(self, out) -> bool:
         """Whether this step's screen-space gradients go to the densifier and must leave L_sem out."""
