@@ -14,9 +14,14 @@ from kornia.metrics import ssim as kornia_ssim
 from torch import Tensor
 
 
+def _ssim_map(pred: Tensor, gt: Tensor, window: int = 11) -> Tensor:
+    """[1, 3, H, W] SSIM map of two [H, W, 3] images in [0, 1] (kornia, window x window Gaussian window)."""
+    return kornia_ssim(pred.permute(2, 0, 1)[None], gt.permute(2, 0, 1)[None], window)
+
+
 def ssim_value(pred: Tensor, gt: Tensor, window: int = 11) -> Tensor:
     """Mean SSIM of two [H, W, 3] images in [0, 1] (kornia, 11x11 Gaussian window)."""
-    return kornia_ssim(pred.permute(2, 0, 1)[None], gt.permute(2, 0, 1)[None], window).mean()
+    return _ssim_map(pred, gt, window).mean()
 
 
 def photometric_loss(pred: Tensor, gt: Tensor, ssim_weight: float = 0.2, weight: Tensor | None = None) -> Tensor:
@@ -31,8 +36,8 @@ def photometric_loss(pred: Tensor, gt: Tensor, ssim_weight: float = 0.2, weight:
     l1 = ((pred - gt).abs().mean(-1) * weight).sum() / mass
     if ssim_weight <= 0:
         return l1
-    ssim_map = kornia_ssim(pred.permute(2, 0, 1)[None], gt.permute(2, 0, 1)[None], 11)[0].mean(0)  # [H, W]
-    return (1.0 - ssim_weight) * l1 + ssim_weight * (1.0 - (ssim_map * weight).sum() / mass)
+    ssim = _ssim_map(pred, gt)[0].mean(0)  # [H, W]
+    return (1.0 - ssim_weight) * l1 + ssim_weight * (1.0 - (ssim * weight).sum() / mass)
 
 
 def semantic_attention_loss(pred: Tensor, gt: Tensor, attention: Tensor, lambda_sem: float = 0.8,

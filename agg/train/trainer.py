@@ -240,9 +240,11 @@ class Trainer:
         """[H, W] 1 - the frozen agents' rendered alpha in a Tick with ``tick_agent_mask`` on, else None."""
         if not self.cfg.tick_agent_mask or phase.name != "tick" or self.graph.num_agents == 0:
             return None
+        slices = self.graph.node_slices()  # rows in compose order: background, sky, then the agents
+        agent = torch.zeros(slices["nonrigid"].stop, 1)  # [N, 1] 1 on agent rows
+        agent[slices["rigid"].start:] = 1.0
         with torch.no_grad():
-            node = self.graph.compose(frame)["node"]  # [N] 0: background / sky, k > 0: agent instance
-            out = self.graph.render(frame, colors=(node > 0).float()[:, None])
+            out = self.graph.render(frame, colors=agent.to(self.graph.background.means.device))
         return (1.0 - out.color[..., 0]).clamp(0.0, 1.0)
 
     def _densify_reads_photo(self, out) -> bool:
