@@ -44,7 +44,7 @@ from agg.train.losses import photometric_loss, semantic_attention_loss
 @dataclass(frozen=True)
 class TrackingConfig:
     at: tuple[int, ...] = (2_500, 5_000, 10_000)  # paper-scale iterations (scaled like the milestones)
-    levels: tuple[int, ...] = (4, 2)  # downscale factors, coarse to fine
+    levels: tuple[int, ...] = (4, 2, 1)  # downscale factors, coarse to fine, ending at the training size
     steps: int = 20  # Adam steps per level
     lr_translation: float = 2e-3  # x scene extent, per step at the coarsest level
     lr_rotation: float = 2e-3  # radians per step at the coarsest level

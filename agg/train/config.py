@@ -153,7 +153,7 @@ def _preset(name: str, max_width: int, iterations: int, sh_degree: int, max_gaus
 PRESETS: dict[str, TrainConfig] = {
     # CPU-sized presets; 'paper' is Sec. 4.2 (a GPU run: full resolution, 30k iterations, SH 3)
     "fast": _preset("fast", 320, 1_500, 0, 40_000, agent_budget=1500, checkpoint_every=250,
-                    tracking=TrackingConfig(at=(2_500, 5_000), steps=10)),
+                    tracking=TrackingConfig(at=(2_500, 5_000), levels=(4, 2), steps=10)),
     "balanced": _preset("balanced", 480, 2_000, 1, 60_000, agent_budget=2000),
     "quality": _preset("quality", 960, 10_000, 2, 300_000, agent_budget=6000, checkpoint_every=1000),
     "paper": _preset("paper", 100_000, 30_000, 3, 1_000_000, agent_budget=20_000, checkpoint_every=2000),
