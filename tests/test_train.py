@@ -245,10 +245,12 @@ def test_an_optimiser_step_in_tick_leaves_agents_bit_identical(bundle):
     assert not torch.equal(tr.graph.camera.tau, cam_before)
 
 
-def test_resume_reproduces_the_uninterrupted_loss_curve_and_cancellation_is_cooperative(bundle, tmp_path):
+@pytest.mark.parametrize("restart", [False, True])
+def test_resume_reproduces_the_uninterrupted_loss_curve_and_cancellation_is_cooperative(bundle, tmp_path, restart):
     # 44 iterations cross the warm-up, Tick, Tock, joint phases, two densification refines of the tiny preset and
-    # two camera-tracking rounds (iterations 15 and 29), one on each side of the cancel at 23
-    kw = {"ablate": frozenset({"topology"}), "densify_from": 300, "densify_every": 300,
+    # two camera-tracking rounds (iterations 15 and 29), one on each side of the cancel at 23; with
+    # restart_moments the checkpoint carries each group's last loss key (the joint phase restarts every group)
+    kw = {"ablate": frozenset({"topology"}), "densify_from": 300, "densify_every": 300, "restart_moments": restart,
           "tracking": TrackingConfig(at=(10_000, 20_000), levels=(4,), steps=2)}
     full = _trainer(bundle, iterations=44, **kw)
     full.run()

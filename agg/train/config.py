@@ -82,6 +82,8 @@ class TrainConfig:
     opacity_reset: bool = True  # False: no opacity reset (size pruning still starts at opacity_reset_every)
     grad_threshold: float = 2e-4
     densify_grad: str = "photo"  # what the densifier's screen gradient is of: "photo" (L_photo) | "total" (+ L_sem)
+    restart_moments: bool = False  # True: a group's Adam state restarts when the loss it steps on changes (Eq. 3
+    # on, off or to the other map; agg/train/moments.py)
     agent_box_margin: float | None = 0.25  # agents' canonical means stay in their box grown by this fraction of its
     # half extents (None: free, as before; docs/TRAINING.md "Agents stay in their boxes")
     ablate: frozenset = frozenset()

@@ -29,6 +29,7 @@ from agg.train.data import TrainData
 from agg.train.densify import DensifyConfig, Densifier, highest
 from agg.eval.metrics import psnr
 from agg.train.losses import photometric_loss, semantic_attention_loss
+from agg.train.moments import loss_key, restart_on_change
 from agg.train.tick_tock import GROUPS, TickTockSchedule, set_trainable
 
 # what the topology log keeps of each evolution's report
@@ -90,6 +91,7 @@ class Trainer:
         self.tracking = cfg.tracking.scaled(cfg.scale) if cfg.tracking is not None else None
         self.tracking_log: list[dict] = []  # one row per camera-tracking round
         self.optimizers: dict[str, torch.optim.Optimizer] = {}
+        self.loss_keys: dict[str, str] = {}  # group -> the key of the loss it last stepped on (agg.train.moments)
         self.build_optimizers()
         self._t0 = time.perf_counter()
 
@@ -264,6 +266,10 @@ class Trainer:
             self.topology.accumulate(frame, g.background.means.grad)
         if self.densifier is not None and out.meta.means2d.grad is not None:
             self._accumulate_2d(out, trainable)
+        if self.cfg.restart_moments:
+            masked = self.cfg.tick_agent_mask and phase.name == "tick" and g.num_agents > 0  # _static_weight's
+            restart_on_change(self.optimizers, self.loss_keys, trainable,
+                              loss_key(phase.attention if sem is not None else None, masked))
         for name in trainable:
             if name in self.optimizers:
                 self.optimizers[name].step()
@@ -423,7 +429,7 @@ class Trainer:
     def state_dict(self) -> dict:
         return {"graph": self.graph.state(), "iteration": self.iteration, "history": list(self.history),
                 "spawned": list(self.spawned), "pruned": list(self.pruned), "topology_log": list(self.topology_log),
-                "tracking_log": list(self.tracking_log),
+                "tracking_log": list(self.tracking_log), "loss_keys": dict(self.loss_keys),
                 "generator": self.generator.get_state(), "order": list(self.order),
                 "optimizers": {k: o.state_dict() for k, o in self.optimizers.items()},
                 "densifier": self.densifier.state_dict() if self.densifier is not None else None,
@@ -451,6 +457,7 @@ class Trainer:
         trainer.spawned, trainer.pruned = list(state["spawned"]), list(state["pruned"])
         trainer.topology_log = list(state.get("topology_log", []))
         trainer.tracking_log = list(state.get("tracking_log", []))
+        trainer.loss_keys = dict(state.get("loss_keys", {}))
         trainer.generator.set_state(state["generator"])
         trainer.order = list(state["order"])
         if trainer.densifier is not None and state["densifier"] is not None:
