@@ -7,7 +7,7 @@ with Tick-Tock ablated it alternates between the two maps. The attention-weighte
 mass, so on the agents, a small share of the pixels, it weighs each pixel many times more than L_photo does. Carried
 over, the moments of one loss set the step size for the next: at the first Tock the agents' steps jump, and in the
 joint phase, where L_sem is gone, both the background and the agents step at a fraction of the size they take
-without the semantic loss (docs/TRAINING.md, "Adam's moments across phases").
+without the semantic loss (docs/TRAINING.md, "Learning rates").
 
 The key of a step's loss names what it is made of: ``"photo"``, or ``"bg"`` / ``"ag"`` when Eq. 3 adds that
 attention map, and ``+mask`` when a Tick's L_photo leaves out the frozen agents' pixels (``tick_agent_mask``).
