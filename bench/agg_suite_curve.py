@@ -31,12 +31,12 @@ def train_with_curve(bundle_path: Path, scene_dir: Path, cfg, ablate: str, every
     ``every`` iterations (also appended to ``out_path``)."""
     from agg.io.bundle import SceneBundle
 
-    rec = importlib.import_module("agg.train.reconstruct")  # the module (agg.train's ``reconstruct`` is the function)
+    from agg.train.trainer import Trainer
 
     bundle = SceneBundle.load(bundle_path)
     held: list = []
 
-    class Watched(rec.Trainer):  # the trainer ``reconstruct`` builds, kept for the callback
+    class Watched(Trainer):  # the trainer ``reconstruct`` builds, kept for the callback
         def __init__(self, *args, **kwargs):
             super().__init__(*args, **kwargs)
             held.append(self)
@@ -63,28 +63,41 @@ def train_with_curve(bundle_path: Path, scene_dir: Path, cfg, ablate: str, every
         if echo:
             print(json.dumps(row), flush=True)
 
-    original = rec.Trainer
-    rec.Trainer = Watched
-    try:
-        rec.reconstruct(bundle_path, scene_dir, cfg, resume=False, ablate=ablate, evaluate=False, progress=progress)
-    finally:
-        rec.Trainer = original
+    reconstruct_with(Watched, bundle_path, scene_dir, cfg, ablate, progress=progress)
     return rows
 
 
-def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+def reconstruct_with(trainer_cls, bundle_path: Path, scene_dir: Path, cfg, ablate: str, **kwargs) -> None:
+    """``reconstruct`` the bundle from scratch (no final evaluation) with ``trainer_cls``, a subclass of the
+    trainer that watches the run, in place of the trainer it builds."""
+    rec = importlib.import_module("agg.train.reconstruct")  # the module (agg.train's ``reconstruct`` is the function)
+    original = rec.Trainer
+    rec.Trainer = trainer_cls
+    try:
+        rec.reconstruct(bundle_path, scene_dir, cfg, resume=False, ablate=ablate, evaluate=False, **kwargs)
+    finally:
+        rec.Trainer = original
+
+
+def add_scene_args(p: argparse.ArgumentParser, variants: str) -> None:
+    """The arguments that pick a suite run to watch: the seed, variants, noise, preset, ``--set`` replacements and
+    the bundle's size, as ``bench/agg_suite.py probe`` takes them."""
     p.add_argument("seed", type=int)
-    p.add_argument("--variants", default="agg,no-tick-tock")
+    p.add_argument("--variants", default=variants)
     p.add_argument("--noise", type=float, default=1.0)
-    p.add_argument("--agent-noise", type=float, default=0.0)
     p.add_argument("--preset", default="balanced")
     p.add_argument("--set", action="append", default=[], help="NAME=VALUE, as bench/agg_suite.py probe")
-    p.add_argument("--every", type=int, default=100)
     p.add_argument("--frames", type=int, default=24)
     p.add_argument("--width", type=int, default=320)
     p.add_argument("--height", type=int, default=192)
     p.add_argument("--work", default=str(ROOT / "bench" / "out" / "agg_suite"))
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_scene_args(p, "agg,no-tick-tock")
+    p.add_argument("--agent-noise", type=float, default=0.0)
+    p.add_argument("--every", type=int, default=100)
     args = p.parse_args(argv)
     work = Path(args.work)
     cfg, tag = probe_config(args.preset, args.set)

@@ -18,11 +18,11 @@ at that iteration (the steps up to it are the full run's).
 from __future__ import annotations
 
 import argparse
-import importlib
 import json
 from pathlib import Path
 
-from agg_suite import ROOT, VARIANTS, probe_config, synth_bundle  # bench/ is the script's folder
+from agg_suite import VARIANTS, probe_config, synth_bundle  # bench/ is the script's folder
+from agg_suite_curve import add_scene_args, reconstruct_with
 
 BETA1, BETA2 = 0.9, 0.999  # torch.optim.Adam's defaults, which the trainer uses
 
@@ -67,13 +67,13 @@ def phase_means(rows: list[dict]) -> list[dict]:
 
 def train_with_moments(bundle_path: Path, scene_dir: Path, cfg, ablate: str, until: int | None,
                        out_path: Path) -> list[dict]:
-    rec = importlib.import_module("agg.train.reconstruct")  # the module (agg.train's ``reconstruct`` is the function)
-    trainer_mod = importlib.import_module("agg.train.trainer")
+    from agg.train.trainer import Cancelled, Trainer
+
     rows: list[dict] = []
     out_path.parent.mkdir(parents=True, exist_ok=True)
     fh = out_path.open("w")
 
-    class Watched(rec.Trainer):
+    class Watched(Trainer):
         def step(self) -> dict:
             row = super().step()
             stats = {g: normalised_step(self.optimizers[g], g != "camera") if g in self.optimizers else None
@@ -86,30 +86,19 @@ def train_with_moments(bundle_path: Path, scene_dir: Path, cfg, ablate: str, unt
     def stop() -> bool:
         return until is not None and bool(rows) and rows[-1]["iteration"] >= until
 
-    original = rec.Trainer
-    rec.Trainer = Watched
     try:
-        rec.reconstruct(bundle_path, scene_dir, cfg, resume=False, ablate=ablate, evaluate=False, should_stop=stop)
-    except trainer_mod.Cancelled:
+        reconstruct_with(Watched, bundle_path, scene_dir, cfg, ablate, should_stop=stop)
+    except Cancelled:
         pass
     finally:
-        rec.Trainer = original
         fh.close()
     return rows
 
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("seed", type=int)
-    p.add_argument("--variants", default="agg,no-semantic")
-    p.add_argument("--noise", type=float, default=1.0)
-    p.add_argument("--preset", default="balanced")
-    p.add_argument("--set", action="append", default=[], help="NAME=VALUE, as bench/agg_suite.py probe")
+    add_scene_args(p, "agg,no-semantic")
     p.add_argument("--until", type=int, default=None)
-    p.add_argument("--frames", type=int, default=24)
-    p.add_argument("--width", type=int, default=320)
-    p.add_argument("--height", type=int, default=192)
-    p.add_argument("--work", default=str(ROOT / "bench" / "out" / "agg_suite"))
     args = p.parse_args(argv)
     work = Path(args.work)
     cfg, tag = probe_config(args.preset, args.set)

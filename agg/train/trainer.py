@@ -238,9 +238,13 @@ class Trainer:
             loss.backward()
         return loss, sem, out
 
+    def _masks_agents(self, phase) -> bool:
+        """Whether this phase's L_photo leaves out the frozen agents' pixels (a Tick with ``tick_agent_mask``)."""
+        return self.cfg.tick_agent_mask and phase.name == "tick" and self.graph.num_agents > 0
+
     def _static_weight(self, frame: int, phase) -> torch.Tensor | None:
         """[H, W] 1 - the frozen agents' rendered alpha in a Tick with ``tick_agent_mask`` on, else None."""
-        if not self.cfg.tick_agent_mask or phase.name != "tick" or self.graph.num_agents == 0:
+        if not self._masks_agents(phase):
             return None
         slices = self.graph.node_slices()  # rows in compose order: background, sky, then the agents
         agent = torch.zeros(slices["nonrigid"].stop, 1)  # [N, 1] 1 on agent rows
@@ -267,9 +271,8 @@ class Trainer:
         if self.densifier is not None and out.meta.means2d.grad is not None:
             self._accumulate_2d(out, trainable)
         if self.cfg.restart_moments:
-            masked = self.cfg.tick_agent_mask and phase.name == "tick" and g.num_agents > 0  # _static_weight's
             restart_on_change(self.optimizers, self.loss_keys, trainable,
-                              loss_key(phase.attention if sem is not None else None, masked))
+                              loss_key(phase.attention if sem is not None else None, self._masks_agents(phase)))
         for name in trainable:
             if name in self.optimizers:
                 self.optimizers[name].step()
