@@ -12,8 +12,9 @@ import numpy as np
 START, END = "<!-- agg_suite:start -->", "<!-- agg_suite:end -->"
 
 
-def _load(work: Path) -> list[dict]:
-    return [json.loads(p.read_text()) for p in sorted((work / "runs").glob("*.json"))]
+def _load(folder: Path) -> list[dict]:
+    """The run records in ``folder`` (not its subfolders)."""
+    return [json.loads(p.read_text()) for p in sorted(folder.glob("*.json"))]
 
 
 def _fmt(v, nd=2) -> str:
@@ -167,13 +168,13 @@ def _machines(runs: list[dict]) -> str:
     return "Machines: " + ", ".join(f"{cpu} ({n} runs)" for cpu, n in sorted(count.items())) + "."
 
 
-def probe_table(runs: list[dict]) -> list[str]:
-    """Probe runs (a preset with options replaced) beside the suite's run of the same seed, noise and variant."""
+def probe_table(runs: list[dict], title: str = "Probes: the same runs with training options replaced") -> list[str]:
+    """Probe runs (a preset with options replaced) beside the plain run of the same seed, noise and variant."""
     probes = [r for r in runs if r["kind"] == "probe" and not r.get("oracle_agents")]
     if not probes:
         return []
     plain = {(r["seed"], r["noise"], r["variant"], r["preset"]): r for r in runs if r["kind"] == "synth"}
-    out = ["### Probes: the same runs with training options replaced", "",
+    out = [f"### {title}", "",
            "| Seed | Noise | Variant | Options | PSNR | Agent PSNR | Gaussians | Wall (s) | Unchanged PSNR / agent "
            "PSNR |", "|---|---|---|---|---|---|---|---|---|"]
     for r in sorted(probes, key=lambda r: (r["seed"], r["noise"], " ".join(r["set"]), r["variant"])):
@@ -309,6 +310,50 @@ def other_tables(runs: list[dict]) -> list[str]:
     return out
 
 
+VARIANTS_MORE = ("agg", "baseline", "no-tick-tock", "no-semantic", "no-topology")
+
+
+def more_scenes_table(runs: list[dict], extra: list[dict]) -> list[str]:
+    """Scenes beyond the suite's seeds (records in runs/scenes/): per seed, AGG and each variant run there, and the
+    Δ = AGG − variant over those seeds and over them together with the suite's seeds at the same preset and noise."""
+    extra = [r for r in extra if r["kind"] == "synth"]
+    if not extra:
+        return []
+    out = ["### More scenes (not the acceptance suite): AGG against each variant on further seeds", "",
+           "Same generator, noise and preset as the suite, other seeds (`runs/scenes/`). Full image / agents, "
+           "held-out PSNR in dB; Δ = AGG − variant. " + _machines(extra), ""]
+    for preset, noise in sorted({(r["preset"], r["noise"]) for r in extra}):
+        cell = {(r["seed"], r["variant"]): r for r in extra if (r["preset"], r["noise"]) == (preset, noise)}
+        suite = {(r["seed"], r["variant"]): r for r in runs
+                 if r["kind"] == "synth" and (r["preset"], r["noise"]) == (preset, noise)}
+        variants = [v for v in VARIANTS_MORE if any(k[1] == v for k in cell)]
+        out += [f"`{preset}`, {noise:g} m of camera noise:", "",
+                "| Seed | " + " | ".join(variants) + " | Missed car within 1 m / false agent pruned (AGG) |",
+                "|---" * (len(variants) + 2) + "|"]
+        for s in sorted({k[0] for k in cell}):
+            agg = cell.get((s, "agg"))
+            topo = (agg or {}).get("topology") or {}
+            match = topo.get("missed_match") or {}
+            t = (f"{_fmt(match.get('within_1m'))} / {len(topo.get('false_pruned', []))} of "
+                 f"{len(topo.get('false_ids', []))}") if topo else "–"
+            out.append(f"| {s} | " + " | ".join(_psnr_pair(cell.get((s, v))) for v in variants) + f" | {t} |")
+        out.append("")
+        rows = []
+        for v in variants[1:]:
+            for name, pool in (("these seeds", cell), ("with the suite's", {**suite, **cell})):
+                seeds = sorted(s for s, w in pool if w == "agg" and (s, v) in pool)
+                if not seeds:
+                    continue
+                d = [pool[(s, "agg")]["metrics"]["psnr"] - pool[(s, v)]["metrics"]["psnr"] for s in seeds]
+                dg = [pool[(s, "agg")]["metrics"]["psnr_agents"] - pool[(s, v)]["metrics"]["psnr_agents"]
+                      for s in seeds]
+                rows.append(f"| {v} | {name} | {','.join(map(str, seeds))} | {_fmt(_mean(d))} "
+                            f"({', '.join(_fmt(x) for x in d)}) | {_fmt(_mean(dg))} "
+                            f"({', '.join(_fmt(x) for x in dg)}) |")
+        out += ["| Variant | Seeds from | Seeds | Δ PSNR | Δ agent PSNR |", "|---|---|---|---|---|", *rows, ""]
+    return out
+
+
 def plots(runs: list[dict], docs: Path) -> list[str]:
     import matplotlib
 
@@ -357,7 +402,7 @@ def plots(runs: list[dict], docs: Path) -> list[str]:
 
 
 def write_report(work: Path, docs: Path, machine: str) -> None:
-    runs = _load(work)
+    runs = _load(work / "runs")
     made = plots(runs, docs)
     lines = [START, "## AGG suite (`bench/agg_suite.py`)", "",
              f"Written {datetime.date.today().isoformat()} on the CI-class VM (2 vCPU, {machine}, torch 2.13 CPU, "
@@ -365,6 +410,8 @@ def write_report(work: Path, docs: Path, machine: str) -> None:
     for preset in synth_presets(runs):
         lines += synth_tables(runs, preset) + [""]
     lines += probe_table(runs) + oracle_table(runs) + noisy_box_table(runs)
+    scenes = _load(work / "runs" / "scenes")
+    lines += more_scenes_table(runs, scenes) + probe_table(scenes, "Probes on the further seeds")
     lines += other_tables(runs)
     lines += [f"![{m}]({m})" for m in made] + [END]
     path = docs / "BENCHMARKS.md"
