@@ -31,6 +31,19 @@ def _mean(vals):
     return float(np.mean(vals)) if vals else None
 
 
+def _deltas(pa: dict, pv: dict, seeds: list[int]) -> tuple[list[float], list[float]]:
+    """Per seed, ``pa`` − ``pv`` (seed -> metrics) on the full image, and on the agents where both have them."""
+    d = [pa[s]["psnr"] - pv[s]["psnr"] for s in seeds]
+    dg = [pa[s]["psnr_agents"] - pv[s]["psnr_agents"] for s in seeds
+          if pa[s]["psnr_agents"] is not None and pv[s]["psnr_agents"] is not None]
+    return d, dg
+
+
+def _mean_per(vals: list[float]) -> str:
+    """"mean (v1, v2, ...)" of per-seed values."""
+    return f"{_fmt(_mean(vals))} ({', '.join(_fmt(v) for v in vals)})"
+
+
 def synth_presets(runs: list[dict]) -> list[str]:
     """The presets the suite ran at, the acceptance preset (balanced) first."""
     return sorted({r["preset"] for r in runs if r["kind"] == "synth"}, key=lambda p: (p != "balanced", p))
@@ -61,16 +74,11 @@ def synth_tables(runs: list[dict], preset: str) -> list[str]:
             continue
         pa = {r["seed"]: r["metrics"] for r in a}
         pb = {r["seed"]: r["metrics"] for r in b}
-        fa = [pa[s]["psnr"] for s in seeds]
-        fb = [pb[s]["psnr"] for s in seeds]
-        ga = [pa[s]["psnr_agents"] for s in seeds]
-        gb = [pb[s]["psnr_agents"] for s in seeds]
-        d = [x - y for x, y in zip(fa, fb)]
-        dg = [x - y for x, y in zip(ga, gb) if x is not None and y is not None]
-        per = ", ".join(_fmt(v) for v in d)
-        perg = ", ".join(_fmt(v) for v in dg)
-        out.append(f"| {n:g} m | {','.join(map(str, seeds))} | {_fmt(_mean(fa))} | {_fmt(_mean(fb))} | "
-                   f"{_fmt(_mean(d))} ({per}) | {_fmt(_mean(ga))} | {_fmt(_mean(gb))} | {_fmt(_mean(dg))} ({perg}) |")
+        d, dg = _deltas(pa, pb, seeds)
+        out.append(f"| {n:g} m | {','.join(map(str, seeds))} | {_fmt(_mean([pa[s]['psnr'] for s in seeds]))} | "
+                   f"{_fmt(_mean([pb[s]['psnr'] for s in seeds]))} | {_mean_per(d)} | "
+                   f"{_fmt(_mean([pa[s]['psnr_agents'] for s in seeds]))} | "
+                   f"{_fmt(_mean([pb[s]['psnr_agents'] for s in seeds]))} | {_mean_per(dg)} |")
     abl = [v for v in ("no-tick-tock", "no-semantic", "no-topology") if any(k[1] == v for k in by)]
     if abl:
         out += ["", "**Ablations** (each component switched off alone; Δ = AGG − ablation, same seeds):", "",
@@ -82,12 +90,9 @@ def synth_tables(runs: list[dict], preset: str) -> list[str]:
                 seeds = sorted(set(pa) & set(pv))
                 if not seeds:
                     continue
-                d = [pa[s]["psnr"] - pv[s]["psnr"] for s in seeds]
-                dg = [pa[s]["psnr_agents"] - pv[s]["psnr_agents"] for s in seeds
-                      if pa[s]["psnr_agents"] is not None and pv[s]["psnr_agents"] is not None]
+                d, dg = _deltas(pa, pv, seeds)
                 out.append(f"| {n:g} m | {v} | {','.join(map(str, seeds))} | "
-                           f"{_fmt(_mean([pv[s]['psnr'] for s in seeds]))} | {_fmt(_mean(d))} "
-                           f"({', '.join(_fmt(x) for x in d)}) | "
+                           f"{_fmt(_mean([pv[s]['psnr'] for s in seeds]))} | {_mean_per(d)} | "
                            f"{_fmt(_mean([pv[s]['psnr_agents'] for s in seeds]))} | {_fmt(_mean(dg))} |")
     topo = [r for r in synth if r["variant"] in ("agg", "no-tick-tock", "no-semantic")]
     if topo:
@@ -341,15 +346,13 @@ def more_scenes_table(runs: list[dict], extra: list[dict]) -> list[str]:
         rows = []
         for v in variants[1:]:
             for name, pool in (("these seeds", cell), ("with the suite's", {**suite, **cell})):
-                seeds = sorted(s for s, w in pool if w == "agg" and (s, v) in pool)
+                pa = {s: r["metrics"] for (s, w), r in pool.items() if w == "agg"}
+                pv = {s: r["metrics"] for (s, w), r in pool.items() if w == v}
+                seeds = sorted(set(pa) & set(pv))
                 if not seeds:
                     continue
-                d = [pool[(s, "agg")]["metrics"]["psnr"] - pool[(s, v)]["metrics"]["psnr"] for s in seeds]
-                dg = [pool[(s, "agg")]["metrics"]["psnr_agents"] - pool[(s, v)]["metrics"]["psnr_agents"]
-                      for s in seeds]
-                rows.append(f"| {v} | {name} | {','.join(map(str, seeds))} | {_fmt(_mean(d))} "
-                            f"({', '.join(_fmt(x) for x in d)}) | {_fmt(_mean(dg))} "
-                            f"({', '.join(_fmt(x) for x in dg)}) |")
+                d, dg = _deltas(pa, pv, seeds)
+                rows.append(f"| {v} | {name} | {','.join(map(str, seeds))} | {_mean_per(d)} | {_mean_per(dg)} |")
         out += ["| Variant | Seeds from | Seeds | Δ PSNR | Δ agent PSNR |", "|---|---|---|---|---|", *rows, ""]
     return out
 
