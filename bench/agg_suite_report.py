@@ -31,12 +31,15 @@ def _mean(vals):
     return float(np.mean(vals)) if vals else None
 
 
+def _paired(pa: dict, pv: dict, seeds: list[int], value) -> list[float]:
+    """Per seed, ``value(pa[s])`` − ``value(pv[s])``, over the seeds where both are not None."""
+    pairs = ((value(pa[s]), value(pv[s])) for s in seeds)
+    return [a - b for a, b in pairs if a is not None and b is not None]
+
+
 def _deltas(pa: dict, pv: dict, seeds: list[int]) -> tuple[list[float], list[float]]:
     """Per seed, ``pa`` − ``pv`` (seed -> metrics) on the full image, and on the agents where both have them."""
-    d = [pa[s]["psnr"] - pv[s]["psnr"] for s in seeds]
-    dg = [pa[s]["psnr_agents"] - pv[s]["psnr_agents"] for s in seeds
-          if pa[s]["psnr_agents"] is not None and pv[s]["psnr_agents"] is not None]
-    return d, dg
+    return [pa[s]["psnr"] - pv[s]["psnr"] for s in seeds], _paired(pa, pv, seeds, lambda m: m["psnr_agents"])
 
 
 def _mean_per(vals: list[float]) -> str:
@@ -56,7 +59,7 @@ def _interval(vals: list[float], level: float = 0.95) -> str:
 
 def _background(r: dict) -> float | None:
     """A run's pooled PSNR outside the agent masks (None where the record has no regions)."""
-    return ((r.get("regions") or {}).get("psnr_background"))
+    return (r.get("regions") or {}).get("psnr_background")
 
 
 def synth_presets(runs: list[dict]) -> list[str]:
@@ -367,8 +370,7 @@ def more_scenes_table(runs: list[dict], extra: list[dict]) -> list[str]:
                 if not seeds:
                     continue
                 d, dg = _deltas(pa, pv, seeds)
-                bg = [_background(pool[s, "agg"]) - _background(pool[s, v]) for s in seeds
-                      if _background(pool[s, "agg"]) is not None and _background(pool[s, v]) is not None]
+                bg = _paired({s: pool[s, "agg"] for s in seeds}, {s: pool[s, v] for s in seeds}, seeds, _background)
                 rows.append(f"| {v} | {name} | {','.join(map(str, seeds))} | {_mean_per(d)} | {_interval(d)} | "
                             f"{_mean_per(dg)} | {_interval(dg)} | {_mean_per(bg)} |")
         out += ["| Variant | Seeds from | Seeds | Δ PSNR | 95 % interval | Δ agent PSNR | 95 % interval | "
