@@ -1,6 +1,6 @@
 """Renderer benchmark: prints exactly one JSON line.
 
-    python bench/render.py --scene FILE.npz [--backend cpu]
+    python bench/render.py --scene FILE.npz [--backend cpu] [--device cuda]
     python bench/render.py --generate OUT.npz --width W --height H --n N --sh D
 
 Scene file keys: means [N,3], quats [N,4] (wxyz), scales [N,3] (linear), opacities [N] (in (0,1)), sh [N,K,3],
@@ -8,7 +8,8 @@ viewmat [4,4] (world->camera, OpenCV axes), K [3,3], width, height.
 
 forward_ms: rasterize() under torch.inference_mode (no autograd graph).
 forward_backward_ms: L1 on colour against a fixed random target, backward to every parameter and the view matrix.
-peak_rss_mb: the process's peak resident set size. Times are medians after one warm-up, with 2 torch threads.
+peak_rss_mb: the process's peak resident set size; peak_gpu_mb: the CUDA allocator's peak (null on CPU).
+Times are medians after one warm-up, with 2 torch threads; on a CUDA device each timing waits for the device.
 """
 
 from __future__ import annotations
@@ -59,11 +60,17 @@ def generate(path: str, width: int, height: int, n: int, sh_degree: int, seed: i
              viewmat=np.eye(4, dtype=np.float32), K=K, width=width, height=height)
 
 
-def bench(path: str, backend: str, repeats: int) -> dict:
+def _sync(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def bench(path: str, backend: str, repeats: int, device: str = "cpu") -> dict:
     torch.set_num_threads(2)
+    dev = torch.device(device)
     data = np.load(path)
-    t = {k: torch.from_numpy(np.asarray(data[k])) for k in ("means", "quats", "scales", "opacities", "sh", "viewmat",
-                                                               "K")}
+    t = {k: torch.from_numpy(np.asarray(data[k])).to(dev)
+         for k in ("means", "quats", "scales", "opacities", "sh", "viewmat", "K")}
     width, height = int(data["width"]), int(data["height"])
     kw = dict(K=t["K"], width=width, height=height, backend=backend)
 
@@ -72,7 +79,7 @@ def bench(path: str, backend: str, repeats: int) -> dict:
             return rasterize(t["means"], t["quats"], t["scales"], t["opacities"], sh=t["sh"], viewmat=t["viewmat"],
                              **kw)
 
-    target = torch.rand(height, width, 3, generator=torch.Generator().manual_seed(0))
+    target = torch.rand(height, width, 3, generator=torch.Generator().manual_seed(0)).to(dev)
 
     def forward_backward():
         leaves = {k: v.clone().requires_grad_(True) for k, v in t.items() if k != "K"}
@@ -83,20 +90,24 @@ def bench(path: str, backend: str, repeats: int) -> dict:
 
     def timed(fn):
         fn()  # warm-up (also builds the native kernels on first use)
+        _sync(dev)
         times = []
         for _ in range(repeats):
             t0 = time.perf_counter()
             fn()
+            _sync(dev)
             times.append((time.perf_counter() - t0) * 1e3)
         return statistics.median(times)
 
     fwd = timed(forward)
     fwd_bwd = timed(forward_backward)
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    peak_gpu = torch.cuda.max_memory_allocated(dev) / 2**20 if dev.type == "cuda" else None
     out = forward()
     return {
         "scene": Path(path).name,
         "backend": out.meta.backend,
+        "device": str(dev),
         "width": width,
         "height": height,
         "n": int(t["means"].shape[0]),
@@ -104,6 +115,7 @@ def bench(path: str, backend: str, repeats: int) -> dict:
         "forward_ms": round(fwd, 2),
         "forward_backward_ms": round(fwd_bwd, 2),
         "peak_rss_mb": round(peak, 1),
+        "peak_gpu_mb": None if peak_gpu is None else round(peak_gpu, 1),
         "threads": torch.get_num_threads(),
         "repeats": repeats,
     }
@@ -113,6 +125,7 @@ def main() -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--scene", help="scene .npz to benchmark")
     p.add_argument("--backend", default="auto", choices=["auto", "cpu", "cuda", "torch"])
+    p.add_argument("--device", default="cpu", help="torch device of the scene tensors (cpu, cuda, cuda:1, ...)")
     p.add_argument("--repeats", type=int, default=7)
     p.add_argument("--generate", metavar="OUT.npz", help="write the standard scene instead of benchmarking")
     p.add_argument("--width", type=int, default=640)
@@ -128,7 +141,7 @@ def main() -> int:
         return 0
     if not args.scene:
         p.error("--scene FILE.npz or --generate OUT.npz is required")
-    print(json.dumps(bench(args.scene, args.backend, args.repeats)))
+    print(json.dumps(bench(args.scene, args.backend, args.repeats, args.device)))
     return 0
 
 

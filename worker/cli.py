@@ -39,15 +39,21 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def main_args(args: argparse.Namespace) -> int:
+    from agg.device import resolve_device
     from service.config import ServiceConfig
     from worker.runner import run_worker
 
+    try:
+        device = str(resolve_device(args.grpc_device))
+    except ValueError as exc:
+        print(f"agg worker: error: --grpc-device: {exc}", file=sys.stderr)
+        return 2
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     config = ServiceConfig.from_env(redis_url=args.redis_url, data_dir=args.data_dir, queue=args.queue,
                                     engine=args.engine, checkpoint_every=args.checkpoint_every,
                                     lease_s=args.lease_s, api_keys_file=args.api_keys)
     return run_worker(config, name=args.name, burst=args.burst, jobs=not args.no_jobs, grpc_port=args.grpc_port,
-                      grpc_host=args.grpc_host, api_keys=args.api_keys, device=args.grpc_device)
+                      grpc_host=args.grpc_host, api_keys=args.api_keys, device=device)
 
 
 def main(argv: list[str] | None = None) -> int:

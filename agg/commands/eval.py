@@ -16,6 +16,8 @@ def add_parser(subparsers) -> None:
     p.add_argument("scene", metavar="SCENE", help="scene folder written by agg reconstruct")
     p.add_argument("--max-frames", type=int, metavar="N", help="evaluate at most N held-out frames")
     p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.add_argument("--device", default="cpu", help="torch device to render on: cpu (default), cuda, cuda:N "
+                                                   "(gsplat's rasteriser when it is installed)")
     p.set_defaults(func=run)
 
 
@@ -24,13 +26,14 @@ KEYS = ("psnr", "ssim", "lpips", "psnr_agents", "ssim_agents", "split", "n_test_
 
 
 def run(args: argparse.Namespace) -> int:
+    from agg.device import resolve_device
     from agg.scene import Scene, SceneNotReady, SceneUnreadable
     from agg.eval.nvs import evaluate
     from agg.io.bundle import SceneBundle
     from agg.train.data import resize_images
 
     try:
-        scene = Scene.load(args.scene)
+        scene = Scene.load(args.scene, device=resolve_device(args.device))
         meta, graph = scene.meta, scene.graph
         bundle = SceneBundle.load(meta["bundle"])
         frames = sorted(set(meta["test_frames"]))

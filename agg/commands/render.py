@@ -28,6 +28,7 @@ def add_parser(subparsers) -> None:
                                                    "video), e.g. '-3.5,0,0' for one lane to the left")
     p.add_argument("--what", default="rgb", choices=["rgb", "depth", "alpha", "instances"])
     p.add_argument("--fps", type=float, default=10.0, help="MP4 frame rate")
+    p.add_argument("--device", default="cpu", help="torch device to render on: cpu (default), cuda, cuda:N")
     p.add_argument("-o", "--output", required=True, metavar="OUT.png|OUT.mp4")
     p.set_defaults(func=run)
 
@@ -63,11 +64,12 @@ def _image(res: dict, what: str) -> np.ndarray:
 
 
 def run(args: argparse.Namespace) -> int:
+    from agg.device import resolve_device
     from agg.scene import Scene, SceneNotReady, SceneUnreadable
 
     output = {"rgb": "rgb", "depth": "depth", "alpha": "alpha", "instances": "instance"}[args.what]
     try:
-        scene = Scene.load(args.scene)
+        scene = Scene.load(args.scene, device=resolve_device(args.device))
         n, ts = scene.num_frames, scene.timestamps_us
 
         def at_time(s: float) -> int:  # timestamp of a time in seconds from the first frame

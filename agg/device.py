@@ -1,0 +1,28 @@
+"""Torch device names given by users (``--device``, ``--grpc-device``): parsed once, with a clear error.
+
+``resolve_device("cuda")`` fails with a ``ValueError`` that says why (no CUDA build, no visible device, index out of
+range) instead of a torch error at the first tensor moved there.
+"""
+
+from __future__ import annotations
+
+import torch
+
+
+def resolve_device(spec: str | torch.device) -> torch.device:
+    """``torch.device`` of ``spec`` ("cpu", "cuda", "cuda:1", ...) after checking that it can be used here."""
+    try:
+        dev = torch.device(spec)
+    except (RuntimeError, TypeError) as exc:
+        raise ValueError(f"unknown torch device {str(spec)!r}: use cpu, cuda or cuda:N") from exc
+    if dev.type == "cpu":
+        return dev
+    if dev.type != "cuda":
+        raise ValueError(f"device {str(spec)!r}: only cpu and cuda are supported")
+    if not torch.cuda.is_available():
+        build = "this torch is a CPU build" if torch.version.cuda is None else "no CUDA device is visible"
+        raise ValueError(f"device {str(spec)!r}: {build}")
+    count = torch.cuda.device_count()
+    if dev.index is not None and dev.index >= count:
+        raise ValueError(f"device {str(spec)!r}: only {count} CUDA device{'s' if count > 1 else ''} visible")
+    return dev
