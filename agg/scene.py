@@ -215,7 +215,7 @@ class Scene:
         meta = json.loads((d / META_FILE).read_text())
         mtime = path.stat().st_mtime_ns
         try:
-            state = torch.load(path, map_location=device, weights_only=True)
+            state = torch.load(path, map_location="cpu", weights_only=True)  # built on the CPU, then moved
             graph = SceneGraph.from_state(state["graph"]).to(device)
         except (EOFError, RuntimeError, KeyError, OSError, ValueError) as exc:
             # RuntimeError also covers torch's UnpicklingError wrapper and truncated zip archives

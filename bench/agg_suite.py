@@ -237,8 +237,9 @@ def machine_info() -> dict:
     lines = info.read_text().splitlines() if info.is_file() else []
     flags = next((ln for ln in lines if ln.startswith("flags")), "")
     model = next((ln.split(":", 1)[1].strip() for ln in lines if ln.startswith("model name")), platform.processor())
+    gpu = torch.cuda.get_device_name(0) if torch.cuda.is_available() else None
     return {"cpu": model, "avx512": " avx512f" in flags, "torch": torch.__version__, "opencv": cv2.__version__,
-            "numpy": np.__version__, "torch_threads": torch.get_num_threads()}
+            "numpy": np.__version__, "torch_threads": torch.get_num_threads(), "gpu": gpu}
 
 
 def bundle_digest(path: Path) -> str | None:
@@ -266,8 +267,8 @@ def _run(args, name: str, input_path, preset, row: dict, **kwargs) -> dict | Non
         return None
     digest = bundle_digest(input_path)  # taken before training: which input this record trained on
     t0 = time.perf_counter()
-    summary = reconstruct(input_path, work / "scenes" / name, preset, resume=False, **kwargs)
-    row = {**row, "preset": preset if isinstance(preset, str) else preset.name,
+    summary = reconstruct(input_path, work / "scenes" / name, preset, resume=False, device=args.device, **kwargs)
+    row = {**row, "preset": preset if isinstance(preset, str) else preset.name, "device": args.device,
            "wall_s": round(time.perf_counter() - t0, 1), "machine": machine_info(), "bundle": digest,
            "metrics": summary.get("metrics"), "summary": summary}
     if row["kind"] in SYNTHETIC_KINDS:  # score the missed and false agents, the cameras and the regions
@@ -412,6 +413,7 @@ def main(argv=None) -> int:
     p.add_argument("--oracle-agents", action="store_true",
                    help="probe: priors with every agent and no false one (the same camera noise)")
     p.add_argument("--force", action="store_true")
+    p.add_argument("--device", default="cpu", help="torch device training runs on (cpu, cuda, ...)")
     args = p.parse_args(argv)
     if args.agent_noise and args.what != "probe":
         p.error("--agent-noise is for probe only (the suite's records keep the tracklet boxes exact)")

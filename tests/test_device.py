@@ -30,6 +30,14 @@ def test_cuda_without_a_device_says_why():
         resolve_device("cuda")
 
 
+@pytest.mark.skipif(torch.cuda.is_available(), reason="a CUDA device is visible")
+def test_reconstruct_on_a_missing_device_fails_before_any_work(tmp_path, capsys):
+    bundle, _ = make_bundle(tmp_path)
+    assert main(["reconstruct", str(bundle.path), "-o", str(tmp_path / "s"), "--device", "cuda"]) == 2
+    assert "agg reconstruct: error: device 'cuda'" in capsys.readouterr().err
+    assert not (tmp_path / "s").exists()
+
+
 def test_eval_and_render_reject_bad_devices_before_loading(tmp_path, capsys):
     bundle, _ = make_bundle(tmp_path)
     d = write_scene_dir(tmp_path, "s", bundle, make_graph(bundle), train_frames=[0, 1, 2, 3, 5])

@@ -29,8 +29,12 @@ def test_cuda_matches_cpu(seed, sh_degree):
                         viewmat=leaves["viewmat"], background=torch.tensor([0.1, 0.2, 0.3], device=device),
                         backend=backend)
         target = torch.rand(out.color.shape, generator=torch.Generator().manual_seed(seed)).to(device)
+        out.meta.means2d.retain_grad()  # what densification reads
         ((out.color - target).abs().mean() + out.alpha.mean()).backward()
-        results[backend] = (out, {k: v.grad.cpu() for k, v in leaves.items()})
+        grads = {k: v.grad.cpu() for k, v in leaves.items()}
+        assert out.meta.means2d.grad is not None, backend
+        grads["means2d"] = out.meta.means2d.grad.cpu()
+        results[backend] = (out, grads)
     (a, ga), (b, gb) = results["cpu"], results["cuda"]
     assert b.meta.backend == "cuda"
     # gsplat's boxes and float ordering differ slightly at splat edges: compare means and tails separately.

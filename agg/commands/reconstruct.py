@@ -30,6 +30,8 @@ def add_parser(subparsers) -> None:
     p.add_argument("--no-resume", action="store_true", help="start over even if SCENE has a checkpoint")
     p.add_argument("--no-eval", action="store_true", help="skip the novel-view evaluation")
     p.add_argument("--json", action="store_true", help="print the summary as one JSON object")
+    p.add_argument("--device", default="cpu", help="torch device training runs on: cpu (default), cuda, cuda:N "
+                                                   "(the priors run on the CPU)")
     p.set_defaults(func=run)
 
 
@@ -82,7 +84,8 @@ def run(args: argparse.Namespace) -> int:
         overrides = {"iterations": args.iterations} if args.iterations else None
         summary = reconstruct(args.input, args.output, args.preset, progress=bar, resume=not args.no_resume,
                               overrides=overrides, ablate=args.ablate or None, gt_poses=args.gt_poses,
-                              evaluate=not args.no_eval, max_frames=args.max_frames, intrinsics=args.intrinsics)
+                              evaluate=not args.no_eval, max_frames=args.max_frames, intrinsics=args.intrinsics,
+                              device=args.device)
     except (ValueError, OSError) as exc:
         bar.close()
         print(f"agg reconstruct: error: {exc}", file=sys.stderr)

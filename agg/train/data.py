@@ -30,6 +30,14 @@ class TrainData:
     def num_frames(self) -> int:
         return int(self.images.shape[0])
 
+    def to(self, device: torch.device | str) -> "TrainData":
+        """The same data with its tensors on ``device`` (frames, intrinsics and attention maps)."""
+        def move(x):
+            return None if x is None else x.to(device)
+
+        return TrainData(self.images.to(device), self.K.to(device), self.width, self.height, move(self.m_bg),
+                         move(self.m_ag), list(self.train_frames), list(self.test_frames))
+
 
 def training_size(width: int, height: int, max_width: int) -> tuple[int, int, float]:
     """(w, h, factor): the bundle size scaled down (never up) so that w <= max_width."""

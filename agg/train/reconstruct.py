@@ -123,12 +123,17 @@ def reconstruct(input_path: str | Path, scene_dir: str | Path, preset: str | Tra
                 resume: bool = True, checkpoint_every: int | None = None, overrides: dict | None = None,
                 ablate: str | None = None, gt_poses: bool = False, evaluate: bool = True,
                 max_frames: int | None = None, intrinsics: str | None = None,
-                checkpoint_ok: Callable[[], bool] | None = None) -> dict:
+                checkpoint_ok: Callable[[], bool] | None = None, device: str | torch.device = "cpu") -> dict:
     """Train a scene graph on ``input_path`` into ``scene_dir`` and return the summary (also in scene.json).
 
     Raises ``Cancelled`` when ``should_stop()`` turns True, in the priors or in training (the checkpoint keeps the
     progress; calling again with ``resume=True`` continues from it). ``checkpoint_ok()`` is asked before each
-    checkpoint write and False skips the write: a worker passes "I still hold this job's lease"."""
+    checkpoint write and False skips the write: a worker passes "I still hold this job's lease". ``device``: where
+    training runs ("cpu", "cuda", "cuda:N"; ``agg.device.resolve_device``); the priors always run on the CPU, and a
+    checkpoint resumes on any device."""
+    from agg.device import resolve_device
+
+    dev = resolve_device(device)
     scene_dir = Path(scene_dir)
     scene_dir.mkdir(parents=True, exist_ok=True)
     cfg = preset if isinstance(preset, TrainConfig) else get_preset(preset)
@@ -141,7 +146,7 @@ def reconstruct(input_path: str | Path, scene_dir: str | Path, preset: str | Tra
         bundle = with_gt_poses(bundle, scene_dir / "bundle_gt_poses")
     t_priors = time.perf_counter() - t0
     seed_everything(cfg.seed)
-    data = load_train_data(bundle, cfg.max_width, cfg.attention_norm, cfg.eval_every)
+    data = load_train_data(bundle, cfg.max_width, cfg.attention_norm, cfg.eval_every).to(dev)
     metric = estimate_metric_scale(bundle)  # metres per scene unit (agg/priors/metric_scale.py)
     ckpt = scene_dir / "checkpoint.pt"
     meta = {"version": 1, "scene_id": scene_dir.name, "bundle": str(Path(bundle.path).resolve()),
@@ -149,7 +154,7 @@ def reconstruct(input_path: str | Path, scene_dir: str | Path, preset: str | Tra
             "width": data.width, "height": data.height, "K": data.K.tolist(), "train_frames": data.train_frames,
             "test_frames": data.test_frames, "preset": cfg.name, "ablate": sorted(cfg.ablate),
             "gt_poses": bool(gt_poses), "config": cfg.as_dict(), "metric_scale": metric.as_dict(),
-            "status": "training"}
+            "device": str(dev), "status": "training"}
     (scene_dir / "scene.json").write_text(json.dumps(meta, indent=1))
     kwargs = {"progress": progress, "should_stop": should_stop, "checkpoint_ok": checkpoint_ok, "metric": metric}
     if resume and ckpt.is_file():
@@ -164,7 +169,7 @@ def reconstruct(input_path: str | Path, scene_dir: str | Path, preset: str | Tra
     graph = trainer.graph
     torch.save({"graph": graph.state(), "iteration": trainer.iteration, "history": trainer.history},
                scene_dir / "model.pt")
-    summary = {"iterations": trainer.iteration, "seconds_priors": round(t_priors, 2),
+    summary = {"iterations": trainer.iteration, "device": str(dev), "seconds_priors": round(t_priors, 2),
                "seconds_train": round(t_train, 2), "initial": initial, "n_gaussians": graph.num_gaussians(),
                "n_agents": graph.num_agents, "nodes": _node_names(graph), "agents_spawned": trainer.spawned,
                "agents_pruned": trainer.pruned, "topology": trainer.topology_log,
@@ -180,7 +185,7 @@ def reconstruct(input_path: str | Path, scene_dir: str | Path, preset: str | Tra
             progress({"stage": "eval", "phase": "eval"})
         from agg.eval.nvs import evaluate as nvs_evaluate
 
-        metrics = nvs_evaluate(graph, bundle, data.test_frames, data.train_frames, images=data.images)
+        metrics = nvs_evaluate(graph, bundle, data.test_frames, data.train_frames, images=data.images.cpu())
         (scene_dir / "metrics.json").write_text(json.dumps(metrics, indent=1))
         summary["metrics"] = {k: v for k, v in metrics.items() if k != "per_frame"}
     summary["seconds_total"] = round(time.perf_counter() - t0, 2)

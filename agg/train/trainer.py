@@ -60,6 +60,7 @@ class Trainer:
         unit (default: ``estimate_metric_scale(bundle)``; 1 without a bundle)."""
         self.graph, self.data, self.cfg, self.bundle = graph, data, config, bundle
         self.progress, self.should_stop, self.checkpoint_ok = progress, should_stop, checkpoint_ok
+        graph.to(data.images.device)  # training runs where the data is (TrainData.to)
         graph.K = data.K.clone()
         graph.width, graph.height = data.width, data.height
         cfg = config
@@ -110,7 +111,7 @@ class Trainer:
         ids = [int(i) for i in b.tracklets.ids] if b.tracklets is not None else []
         dynamic = (resize_depth(b.dynamic_masks, self.data.width, self.data.height) > 0.5
                    if b.has("dynamic_masks") else None)
-        return TopologyEvolution(self.cfg.evolution.scaled(self.cfg.scale), b.semantics, self.data.K.numpy(),
+        return TopologyEvolution(self.cfg.evolution.scaled(self.cfg.scale), b.semantics, self.data.K.cpu().numpy(),
                                  self.data.width, self.data.height, self.metric.metres_per_unit,
                                  depth=depth, reserved_ids=ids, dynamic=dynamic,
                                  box_half=tracklet_half_extents(b.tracklets))
@@ -448,6 +449,9 @@ class Trainer:
     @classmethod
     def resume(cls, path: Path, data: TrainData, config: TrainConfig, bundle: SceneBundle | None = None,
                **kwargs) -> "Trainer":
+        # the graph is rebuilt on the CPU, then moved to the device training goes on (that of ``data``): a
+        # checkpoint written on one device resumes on another; optimiser moments follow their parameters
+        device = data.images.device
         state = torch.load(path, map_location="cpu", weights_only=False)
         graph = SceneGraph.from_state(state["graph"])
         trainer = cls(graph, data, config, bundle, **kwargs)
@@ -467,7 +471,7 @@ class Trainer:
             trainer.densifier.load_state_dict(state["densifier"])
             trainer.densifier.scene_extent = trainer.extent
         if trainer.topology is not None and state["topology"] is not None:
-            trainer.topology.load_state_dict(state["topology"])
+            trainer.topology.load_state_dict(state["topology"], device=device)
         return trainer
 
 
