@@ -1,7 +1,8 @@
 """Torch device names given by users (``--device``, ``--grpc-device``): parsed once, with a clear error.
 
 ``resolve_device("cuda")`` fails with a ``ValueError`` that says why (no CUDA build, no visible device, index out of
-range) instead of a torch error at the first tensor moved there.
+range) instead of a torch error at the first tensor moved there; ``"auto"`` is the first CUDA device when torch sees
+one, else the CPU.
 """
 
 from __future__ import annotations
@@ -10,7 +11,9 @@ import torch
 
 
 def resolve_device(spec: str | torch.device) -> torch.device:
-    """``torch.device`` of ``spec`` ("cpu", "cuda", "cuda:1", ...) after checking that it can be used here."""
+    """``torch.device`` of ``spec`` ("cpu", "cuda", "cuda:1", "auto", ...) after checking that it can be used here."""
+    if spec == "auto":
+        return torch.device("cuda", 0) if torch.cuda.is_available() else torch.device("cpu")
     try:
         dev = torch.device(spec)
     except (RuntimeError, TypeError) as exc:

@@ -46,6 +46,9 @@ class ServiceConfig:
     max_attempts: int = 3  # attempts before a job that keeps losing its worker fails [AGG_MAX_ATTEMPTS]
     checkpoint_every: int = 200  # engine checkpoint period in iterations [AGG_CHECKPOINT_EVERY]
     engine: str = "agg.train:reconstruct"  # "module:function" the worker runs [AGG_ENGINE]
+    # torch device jobs train on: auto (the first CUDA device when torch sees one, else cpu), cpu, cuda, cuda:N;
+    # given to engines whose function takes ``device`` [AGG_TRAIN_DEVICE]
+    train_device: str = "auto"
     write_preview: bool = True  # render preview.mp4 after a job succeeds [AGG_WRITE_PREVIEW]
     render_max_pixels: int = 4096 * 2160  # HTTP render size limit (width * height) [AGG_RENDER_MAX_PIXELS]
     render_cache_size: int = 2  # loaded scenes kept by the API for renders [AGG_RENDER_CACHE]
@@ -76,7 +79,8 @@ class ServiceConfig:
                      "stream_maxlen": "AGG_STREAM_MAXLEN", "lease_s": "AGG_LEASE_S",
                      "reap_interval_s": "AGG_REAP_INTERVAL_S", "max_attempts": "AGG_MAX_ATTEMPTS",
                      "checkpoint_every": "AGG_CHECKPOINT_EVERY", "engine": "AGG_ENGINE",
-                     "write_preview": "AGG_WRITE_PREVIEW", "render_max_pixels": "AGG_RENDER_MAX_PIXELS",
+                     "train_device": "AGG_TRAIN_DEVICE", "write_preview": "AGG_WRITE_PREVIEW",
+                     "render_max_pixels": "AGG_RENDER_MAX_PIXELS",
                      "render_cache_size": "AGG_RENDER_CACHE", "job_retention_s": "AGG_JOB_RETENTION_S"}
         for name, var in env_names.items():
             raw = env.get(var)
@@ -96,7 +100,7 @@ class ServiceConfig:
                "AGG_STREAM_MAXLEN": str(self.stream_maxlen), "AGG_LEASE_S": str(self.lease_s),
                "AGG_REAP_INTERVAL_S": str(self.reap_interval_s), "AGG_MAX_ATTEMPTS": str(self.max_attempts),
                "AGG_CHECKPOINT_EVERY": str(self.checkpoint_every), "AGG_ENGINE": self.engine,
-               "AGG_WRITE_PREVIEW": "1" if self.write_preview else "0",
+               "AGG_TRAIN_DEVICE": self.train_device, "AGG_WRITE_PREVIEW": "1" if self.write_preview else "0",
                "AGG_JOB_RETENTION_S": str(self.job_retention_s)}
         if self.redis_url:
             out["AGG_REDIS_URL"] = self.redis_url

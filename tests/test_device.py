@@ -49,3 +49,31 @@ def test_eval_and_render_reject_bad_devices_before_loading(tmp_path, capsys):
     assert main(["eval", str(d), "--device", "cpu", "--json"]) == 0
     out = json.loads(capsys.readouterr().out)
     assert out["n_test_frames"] == 1 and out["psnr"] > 15.0
+
+
+def test_auto_is_cuda_when_torch_sees_it():
+    want = "cuda" if torch.cuda.is_available() else "cpu"
+    assert resolve_device("auto").type == want
+
+
+def test_workers_train_on_the_configured_device():
+    from service.config import ServiceConfig
+    from tests import service_engine
+    from agg.train import reconstruct
+    from worker.jobs import takes_device
+
+    assert ServiceConfig().train_device == "auto"
+    cfg = ServiceConfig.from_env({"AGG_TRAIN_DEVICE": "cuda:1"})
+    assert cfg.train_device == "cuda:1" and cfg.to_env()["AGG_TRAIN_DEVICE"] == "cuda:1"
+    assert ServiceConfig.from_env(cfg.to_env()).train_device == "cuda:1"  # agg serve -> its workers
+    assert takes_device(reconstruct) and takes_device(lambda *a, **kw: None)
+    assert not takes_device(service_engine.reconstruct)  # an engine without the argument never gets it
+
+
+def test_a_worker_with_a_bad_device_stops_before_taking_jobs(capsys):
+    from worker.cli import main as worker_main
+
+    assert worker_main(["--train-device", "gpu", "--redis-url", "redis://127.0.0.1:1/0", "--burst"]) == 2
+    assert "agg worker: error: unknown torch device 'gpu'" in capsys.readouterr().err
+    assert worker_main(["--grpc-device", "mps", "--redis-url", "redis://127.0.0.1:1/0", "--burst"]) == 2
+    assert "device 'mps'" in capsys.readouterr().err

@@ -129,3 +129,24 @@ def test_a_stale_build_baton_does_not_hang_the_next_load():
     again = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert again.returncode == 0 and "loaded" in again.stdout, again.stderr[-2000:]
     assert not (native.cache_dir() / "lock").exists()
+
+
+def test_gsplat_screen_means_receive_the_gradient_of_the_means_gsplat_used():
+    """The cuda backend's ``meta.means2d`` (derived from the tensor gsplat composites from) gets dL/dmeans2d in
+    ``.grad``, accumulating over backward passes, without autograd warnings: densification reads it."""
+    import warnings
+
+    from agg.render.raster_gsplat import _screen_means
+
+    x = torch.randn(1, 7, 2, requires_grad=True)
+    used = x * 2.0  # [1, N, 2] what gsplat would composite from
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        ours = _screen_means(used)
+        ours.retain_grad()  # as the trainer does
+        loss = (used ** 2).sum()
+        loss.backward(retain_graph=True)
+        assert torch.allclose(ours.grad, 2 * used[0].detach())
+        loss.backward()
+        assert torch.allclose(ours.grad, 4 * used[0].detach())
+    assert torch.allclose(_screen_means(used.detach()), used[0].detach() - 0.5)

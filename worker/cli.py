@@ -34,6 +34,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--grpc-port", type=int, help="also serve the gRPC services on this port (needs --api-keys)")
     p.add_argument("--grpc-host", default="0.0.0.0", help="gRPC bind address (default 0.0.0.0)")
     p.add_argument("--api-keys", type=Path, help="tenant:key file for gRPC [AGG_API_KEYS]")
+    p.add_argument("--train-device", help="torch device jobs train on: auto (CUDA when torch sees it), cpu, cuda:N "
+                                          "[AGG_TRAIN_DEVICE, default auto]")
     p.add_argument("--grpc-device", default="cpu", help="torch device of gRPC renders (cpu, cuda:0, ...)")
     p.add_argument("--no-jobs", action="store_true", help="serve gRPC only, consume no jobs")
 
@@ -43,15 +45,18 @@ def main_args(args: argparse.Namespace) -> int:
     from service.config import ServiceConfig
     from worker.runner import run_worker
 
-    try:
-        device = str(resolve_device(args.grpc_device))
-    except ValueError as exc:
-        print(f"agg worker: error: --grpc-device: {exc}", file=sys.stderr)
-        return 2
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     config = ServiceConfig.from_env(redis_url=args.redis_url, data_dir=args.data_dir, queue=args.queue,
                                     engine=args.engine, checkpoint_every=args.checkpoint_every,
-                                    lease_s=args.lease_s, api_keys_file=args.api_keys)
+                                    lease_s=args.lease_s, api_keys_file=args.api_keys,
+                                    train_device=args.train_device)
+    try:  # bad device names stop the worker before it takes a job
+        device = str(resolve_device(args.grpc_device))
+        train = resolve_device(config.train_device)
+    except ValueError as exc:
+        print(f"agg worker: error: {exc}", file=sys.stderr)
+        return 2
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    logging.getLogger("agg.worker").info("jobs train on %s (%s)", train, config.train_device)
     return run_worker(config, name=args.name, burst=args.burst, jobs=not args.no_jobs, grpc_port=args.grpc_port,
                       grpc_host=args.grpc_host, api_keys=args.api_keys, device=device)
 

@@ -10,6 +10,7 @@ requeued, or it was cancelled) changes nothing: every write is fenced by the att
 from __future__ import annotations
 
 import importlib
+import inspect
 import logging
 import os
 import socket
@@ -94,6 +95,15 @@ def load_engine(spec: str):
     if cancelled is None:
         cancelled = getattr(importlib.import_module(fn.__module__), "Cancelled", None)
     return fn, cancelled
+
+
+def takes_device(fn) -> bool:
+    """Whether an engine function accepts ``device`` (``agg.train:reconstruct`` does; a custom engine may not)."""
+    try:
+        params = inspect.signature(fn).parameters
+    except (TypeError, ValueError):
+        return False
+    return "device" in params or any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values())
 
 
 def engine_options(options: dict, input_path: str) -> dict:
@@ -234,6 +244,13 @@ def _run_engine(store: JobStore, job: dict, attempt: int, settings: WorkerSettin
 
     kwargs = dict(progress=sink, should_stop=should_stop, checkpoint_ok=hb.holds_lease, resume=True,
                   checkpoint_every=cfg.checkpoint_every)
+    if takes_device(fn):  # the job trains where the worker was told to (AGG_TRAIN_DEVICE, default auto)
+        from agg.device import resolve_device
+
+        try:
+            kwargs["device"] = str(resolve_device(cfg.train_device))
+        except ValueError as exc:
+            return "failed", f"AGG_TRAIN_DEVICE: {exc}", None
     kwargs.update(engine_options(job.get("options") or {}, job["input_path"]))
     timed_out = f"timed out after {job.get('timeout_s')} s (the limit of preset {job['preset']!r})"
     try:

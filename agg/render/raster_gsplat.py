@@ -71,6 +71,7 @@ def _screen_means(used: Tensor) -> Tensor:
     gradient). A hook on ``used`` copies each backward pass's gradient there, accumulating as autograd does."""
     ours = used[0] - 0.5
     if used.requires_grad:
+        ours.retain_grad()  # marks .grad as meant to be read (no warning); autograd itself never fills it
         ref = weakref.ref(ours)  # a strong reference would make a cycle through the autograd graph (a leak)
 
         def copy_grad(grad: Tensor) -> None:
