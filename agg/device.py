@@ -29,3 +29,9 @@ def resolve_device(spec: str | torch.device) -> torch.device:
     if dev.index is not None and dev.index >= count:
         raise ValueError(f"device {str(spec)!r}: only {count} CUDA device{'s' if count > 1 else ''} visible")
     return dev
+
+
+def synchronize(device: torch.device) -> None:
+    """Wait for the work queued on ``device`` (a no-op on the CPU): wall-clock timings of CUDA work need it."""
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)

@@ -28,6 +28,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from agg.device import synchronize  # noqa: E402
 from agg.render import rasterize  # noqa: E402
 
 
@@ -60,11 +61,6 @@ def generate(path: str, width: int, height: int, n: int, sh_degree: int, seed: i
              viewmat=np.eye(4, dtype=np.float32), K=K, width=width, height=height)
 
 
-def _sync(device: torch.device) -> None:
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
-
-
 def bench(path: str, backend: str, repeats: int, device: str = "cpu") -> dict:
     torch.set_num_threads(2)
     dev = torch.device(device)
@@ -90,12 +86,12 @@ def bench(path: str, backend: str, repeats: int, device: str = "cpu") -> dict:
 
     def timed(fn):
         fn()  # warm-up (also builds the native kernels on first use)
-        _sync(dev)
+        synchronize(dev)
         times = []
         for _ in range(repeats):
             t0 = time.perf_counter()
             fn()
-            _sync(dev)
+            synchronize(dev)
             times.append((time.perf_counter() - t0) * 1e3)
         return statistics.median(times)
 

@@ -27,6 +27,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from agg.device import resolve_device  # noqa: E402
+from agg.eval.metrics import psnr  # noqa: E402
 from agg.render.rasterize import _choose_backend  # noqa: E402
 from agg.scene import Scene  # noqa: E402
 
@@ -54,11 +55,6 @@ def render_all(scene: Scene, jobs, width: int, height: int, outputs) -> tuple[li
         times.append((time.perf_counter() - t0) * 1e3)
         results.append(res)
     return times, results
-
-
-def psnr(a: np.ndarray, b: np.ndarray) -> float:
-    mse = float(np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2))
-    return float(-10.0 * np.log10(max(mse, 1e-12)))
 
 
 def main() -> int:

@@ -30,6 +30,7 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 
+from agg.device import synchronize
 from agg.eval.interpolate import interpolate_agents, interpolate_camera
 from agg.eval.metrics import Lpips, as_image, psnr, psnr_from_mse, squared_error, ssim, ssim_sum
 
@@ -61,11 +62,6 @@ def fit_image(img: torch.Tensor, height: int, width: int, mode: str = "area") ->
         return img
     x = img.permute(2, 0, 1)[None].float()
     return torch.nn.functional.interpolate(x, size=(height, width), mode=mode)[0].permute(1, 2, 0)
-
-
-def _sync(device: torch.device) -> None:
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
 
 
 def held_out_overrides(graph, train_frames: Sequence[int], frame: int,
@@ -122,10 +118,10 @@ def evaluate(graph, bundle, test_frames: Sequence[int], train_frames: Sequence[i
             graph.render(frames[0], world_from_camera=cam, agent_poses=poses, agent_valid=valid)  # warm-up
             for frame in frames:
                 cam, poses, valid = held_out_overrides(graph, train, frame, tables)
-                _sync(device)
+                synchronize(device)
                 t0 = time.perf_counter()
                 out = graph.render(frame, world_from_camera=cam, agent_poses=poses, agent_valid=valid)
-                _sync(device)
+                synchronize(device)
                 render_s += time.perf_counter() - t0
                 renders.append(out.color.detach().clamp(0.0, 1.0).cpu())  # [H, W, 3]
             n_gaussians = int(graph.compose(frames[0])["means"].shape[0])
