@@ -71,4 +71,3 @@ done
 step suite 300 bash -c "$PY $SUITE --device cuda && cp $TMP/suite/runs/*.json $OUT/suite_record.json"
 step matrix 120 $PY bench/render_matrix.py --device cuda --backend cuda --repeats 9
 rm -rf "$TMP"
-cat "$OUT/steps.txt"
