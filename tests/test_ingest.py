@@ -41,9 +41,9 @@ def noisy_frames(n: int = N, seed: int = 0) -> list[np.ndarray]:
 
 
 def write_av(path: Path, frames, codec: str = "libx264", pix_fmt: str = "yuv420p", rate: int = 10,
-             options: dict | None = None) -> Path:
+             options: dict | None = None, codec_options: dict | None = None) -> Path:
     with av.open(str(path), "w", options=options or {}) as c:
-        s = c.add_stream(codec, rate=rate)
+        s = c.add_stream(codec, rate=rate, options=codec_options or {})
         s.width, s.height, s.pix_fmt = frames[0].shape[1], frames[0].shape[0], pix_fmt
         for f in frames:
             fmt = "gray" if f.ndim == 2 else "rgb24"
