@@ -136,3 +136,32 @@ def test_a_cancel_inside_a_tracking_round_puts_the_cameras_back_and_the_resumed_
     torch.testing.assert_close(torch.tensor([h["loss"] for h in resumed.history]),
                                torch.tensor([h["loss"] for h in full.history]), rtol=1e-5, atol=1e-6)
     torch.testing.assert_close(resumed.graph.camera.tau.detach(), full.graph.camera.tau.detach())
+
+
+def test_with_events_at_tick_start_tracking_and_the_opacity_reset_wait_for_a_tick_start(bundle):
+    # 150 iterations: warm-up 25, Ticks of 5 from 25 every 10, joint from 100; milestone 5,600 -> 28, mid-Tick
+    tracking = TrackingConfig(at=(5_600,), levels=(4,), steps=2)
+    cfg = replace(get_preset("tiny"), iterations=150, tracking=tracking, ablate=frozenset({"topology"}),
+                  events_at_tick_start=True)
+    seed_everything(cfg.seed)
+    tr = Trainer(SceneGraph.from_bundle(bundle, cfg.init), load_train_data(bundle, cfg.max_width), cfg, bundle,
+                 should_stop=lambda: tr.iteration >= 37)
+    s = tr.schedule
+    assert (s.warmup, s.alternate, s.joint) == (25, 5, 100) and s.phase(28).name == "tick"
+    assert [s.next_settled(i) for i in (3, 25, 28, 31, 35, 96, 120)] == [3, 25, 35, 35, 35, 100, 120]
+    with pytest.raises(Cancelled):
+        tr.run()
+    assert [row["iteration"] for row in tr.tracking_log] == [35]  # not 28: the Tock from 30 would freeze the map
+    # the balanced preset's one opacity reset (iteration 500, 34 steps before a Tock) moves to the next Tick's start
+    bal = replace(get_preset("balanced"), events_at_tick_start=True, tracking=None)
+    tb = Trainer(SceneGraph.from_bundle(bundle, bal.init), load_train_data(bundle, 64), bal, bundle)
+    assert tb.densifier.config.is_reset(500) and tb.reset_at == {601}
+    assert tb.schedule.phase(600).name == "tock" and tb.schedule.phase(601).name == "tick"
+    bg = tb.graph.background
+    with torch.no_grad():
+        bg.opacity_logits.fill_(3.0)
+    for it in (500, 601):  # the step before 601 was a Tock: the background is reset all the same
+        tb.iteration = it
+        tb._densify({"agents"} if it == 601 else {"camera", "static"})
+        top = float(torch.sigmoid(bg.opacity_logits).max())
+        assert (top > 0.9) if it == 500 else (top <= 2 * tb.densifier.config.prune_opacity + 1e-6), (it, top)

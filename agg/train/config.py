@@ -80,6 +80,8 @@ class TrainConfig:
     densify_every: int = 100
     opacity_reset_every: int = 3_000
     opacity_reset: bool = True  # False: no opacity reset (size pruning still starts at opacity_reset_every)
+    events_at_tick_start: bool = False  # True: a camera-tracking round or the background's opacity reset that
+    # falls inside the alternation waits for the next Tick's first iteration (TickTockSchedule.settles)
     grad_threshold: float = 2e-4
     densify_grad: str = "photo"  # what the densifier's screen gradient is of: "photo" (L_photo) | "total" (+ L_sem)
     restart_moments: bool = False  # True: a group's Adam state restarts when the loss it steps on changes (Eq. 3

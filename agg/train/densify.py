@@ -202,7 +202,7 @@ class Densifier:
                   and cfg.max_scale is not None):
                 self._clamp_scales(params, extent)
             if reset_opacity and cfg.is_reset(iteration):
-                self._reset_opacity(params, optimizer)
+                self.reset_opacity(params, optimizer)
         return src
 
     def _refine(self, key, params, optimizer, iteration, extent, groups) -> Tensor | None:
@@ -279,15 +279,16 @@ class Densifier:
         """Clamp every scale axis to max_scale x extent (in place; the Adam moments are kept)."""
         params.log_scales.clamp_(max=math.log(self.config.max_scale * extent))
 
-    def _reset_opacity(self, params: GaussianParams, optimizer: torch.optim.Optimizer | None) -> None:
+    def reset_opacity(self, params: GaussianParams, optimizer: torch.optim.Optimizer | None) -> None:
         """Opacities clamped to 2 x prune_opacity, their Adam moments zeroed (in place)."""
         p = params.opacity_logits
         value = min(2.0 * self.config.prune_opacity, 0.5)
-        p.clamp_(max=math.log(value / (1.0 - value)))
-        state = optimizer.state.get(p) if optimizer is not None else None
-        for v in (state or {}).values():
-            if torch.is_tensor(v) and v.ndim > 0 and v.shape[:1] == p.shape[:1]:
-                v.zero_()
+        with torch.no_grad():
+            p.clamp_(max=math.log(value / (1.0 - value)))
+            state = optimizer.state.get(p) if optimizer is not None else None
+            for v in (state or {}).values():
+                if torch.is_tensor(v) and v.ndim > 0 and v.shape[:1] == p.shape[:1]:
+                    v.zero_()
 
     # ----------------------------------------------------------------------------------------------- checkpoint
     def state_dict(self) -> dict:

@@ -68,6 +68,22 @@ class TickTockSchedule:
         return Phase("tock", frozenset({"agents"}), 1.0, attention)
 
 
+    def settles(self, iteration: int) -> bool:
+        """Whether the camera and the background, changed just before this iteration, train from it on: outside
+        the alternation (warm-up, joint phase, Tick-Tock off) or at the first iteration of a Tick. A change made
+        late in a Tick would stand frozen through the Tock that follows."""
+        if not self.enabled or iteration < self.warmup or iteration >= self.joint:
+            return True
+        return (iteration - self.warmup) % (2 * max(self.alternate, 1)) == 0
+
+    def next_settled(self, iteration: int) -> int:
+        """The first iteration >= ``iteration`` at which ``settles`` holds."""
+        if self.settles(iteration):
+            return iteration
+        cycle = 2 * max(self.alternate, 1)
+        return min(iteration + (-(iteration - self.warmup)) % cycle, self.joint)
+
+
 def set_trainable(groups: dict[str, list], trainable: frozenset) -> None:
     """``requires_grad`` on every parameter of every group: True for the trainable groups, False otherwise."""
     for name, params in groups.items():

@@ -88,6 +88,10 @@ class Trainer:
         dcfg = replace(dcfg, refine_every=max(dcfg.refine_every, 20),
                        reset_every=max(dcfg.reset_every, 500) if cfg.opacity_reset else 0)
         self.densifier = Densifier(dcfg, self.extent) if cfg.densify else None
+        # with events_at_tick_start, each opacity reset moves to the first iteration the background trains on from
+        self.reset_at = None if not cfg.events_at_tick_start else {
+            self.schedule.next_settled(r) for r in range(dcfg.reset_every, dcfg.refine_stop, dcfg.reset_every or 1)
+            if dcfg.reset_every > 0 and dcfg.is_reset(r)}
         self.topology = self._make_topology() if cfg.topology else None
         self.tracking = cfg.tracking.scaled(cfg.scale) if cfg.tracking is not None else None
         self.tracking_log: list[dict] = []  # one row per camera-tracking round
@@ -317,7 +321,7 @@ class Trainer:
                 extent = max(2.0 * float(params.means.detach().abs().quantile(0.98)), 1e-3)
             src = self.densifier.step(key, params, opt, self.iteration, extent=extent,
                                       groups=node.instance if node is not None else None,
-                                      reset_opacity=node is None)
+                                      reset_opacity=node is None and self.reset_at is None)
             if src is None:
                 continue
             changed = True
@@ -327,6 +331,8 @@ class Trainer:
                 self.topology.on_rows_changed(src)
         if changed:
             self._check_budget()
+        if self.reset_at is not None and self.iteration in self.reset_at:  # after a Tock too: the Tick starts now
+            self.densifier.reset_opacity(g.background, self.optimizers.get("static"))
 
     def _check_budget(self) -> None:
         n = len(self.graph.background)
@@ -370,6 +376,8 @@ class Trainer:
             return True
         if "camera" not in self.trainable_groups(self.schedule.phase(self.iteration)):
             return True
+        if self.cfg.events_at_tick_start and not self.schedule.settles(self.iteration):
+            return True  # late in a Tick: the cameras would move and the background stand frozen in the Tock
         set_trainable(self.group_params(), frozenset())  # every Gaussian frozen; tracking frees omega / tau
         t0 = time.perf_counter()
         attention = self.data.m_bg if self.cfg.semantic else None
