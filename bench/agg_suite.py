@@ -3,6 +3,7 @@
     python bench/agg_suite.py synth [--seeds 0,1,2] [--noise 0,0.25,0.5,1.0] [--variants agg,baseline,...]
     python bench/agg_suite.py kitti [--data ../shared/data/kitti06_51] [--preset fast]
     python bench/agg_suite.py presets [--presets fast,balanced] [--seed 0]
+    python bench/agg_suite.py real --data BUNDLE [--tag NAME] [--variants agg,no-tick-tock,...] [--set seed=1]
     python bench/agg_suite.py probe --set iterations=4000 [--set lr.agent_boost=1] [--set tracking=none] [--seeds 0]
                                     [--set evolution.every=5000] [--set tracking.levels=4,2,1]
                                     [--noise 1.0] [--agent-noise 0.5] [--oracle-agents]
@@ -227,6 +228,29 @@ def region_scores(scene_dir: Path) -> dict | None:
             "agent_pixel_share": n_ag / (n * len(rows)), "agent_error_share": sse_ag / sse}
 
 
+def prior_mask_scores(scene_dir: Path) -> dict:
+    """A real clip's held-out metrics with its priors' dynamic masks as the agent regions (it has no ground truth):
+    the same pixels for every variant, whatever agents each one ends with. Also the PSNR outside them."""
+    from agg.eval.nvs import evaluate
+    from agg.io.bundle import SceneBundle
+    from agg.scene import Scene
+    from agg.train.data import resize_images
+
+    scene = Scene.load(scene_dir)
+    bundle = SceneBundle.load(scene.meta["bundle"])
+    graph = scene.graph
+    metrics = evaluate(graph, bundle, sorted(set(scene.meta["test_frames"])), scene.meta["train_frames"],
+                       images=resize_images(bundle.frames[:], graph.width, graph.height),
+                       agent_masks=np.asarray(bundle.dynamic_masks[:]) > 0)
+    n, rows = graph.width * graph.height, metrics["per_frame"]
+    sse = sum(10.0 ** (-r["psnr"] / 10.0) * n for r in rows)
+    sse_ag = sum(10.0 ** (-r["psnr_agents"] / 10.0) * r["agent_pixels"] for r in rows if r["agent_pixels"])
+    n_ag = sum(r["agent_pixels"] or 0 for r in rows)
+    return {"psnr": metrics["psnr"], "psnr_agents": metrics["psnr_agents"], "ssim_agents": metrics["ssim_agents"],
+            "psnr_background": float(-10.0 * np.log10(max(sse - sse_ag, 1e-12) / (n * len(rows) - n_ag))),
+            "agent_pixel_share": n_ag / (n * len(rows))}
+
+
 def machine_info() -> dict:
     """What a run's floating-point results may depend on besides the code and the bundle: the CPU (torch and OpenCV
     pick SIMD kernels from its flags) and the numeric libraries' versions."""
@@ -278,6 +302,8 @@ def _run(args, name: str, input_path, preset, row: dict, **kwargs) -> dict | Non
         row["cameras"] = camera_scores(graph, work / "scenes" / name, input_path)
         row["regions"] = region_scores(work / "scenes" / name)
         row["agent_poses"] = agent_pose_scores(graph, input_path)
+    elif row["kind"] == "real":
+        row["prior_masks"] = prior_mask_scores(work / "scenes" / name)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(row, indent=1))
     print(name, f"{row['wall_s']} s", "PSNR", row["metrics"]["psnr"], "agents", row["metrics"]["psnr_agents"],
@@ -364,6 +390,10 @@ def run_rescore(args) -> None:
     for path in sorted((work / "runs").glob("*.json")):
         row = json.loads(path.read_text())
         scene = work / "scenes" / path.stem
+        if row["kind"] == "real" and (scene / "model.pt").is_file():
+            row["prior_masks"] = prior_mask_scores(scene)
+            path.write_text(json.dumps(row, indent=1))
+            print(path.stem, row["prior_masks"], flush=True)
         if row["kind"] in SYNTHETIC_KINDS and (scene / "metrics.json").is_file():
             if json.loads((scene / "metrics.json").read_text())["psnr"] != row["metrics"]["psnr"]:
                 print(path.stem, "skipped: the scene on disk is not the one this record scored", flush=True)
@@ -386,6 +416,18 @@ def run_kitti(args) -> None:
              {"kind": "kitti", "gt_poses": gt}, gt_poses=gt)
 
 
+def run_real(args) -> None:
+    """Each variant on one real input (a bundle whose priors were estimated once, so every variant trains on the
+    same priors), with ``--set`` options and training seeds when given: there is no ground truth beyond the frames,
+    so the records hold the held-out metrics alone."""
+    cfg, tag = probe_config(args.preset, args.set) if args.set else (args.preset, "")
+    data = Path(args.data)
+    name = args.tag or data.name
+    for variant in args.variants.split(","):
+        _run(args, f"real_{name}_{variant}_{args.preset}" + (f"_{tag}" if tag else ""), data, cfg,
+             {"kind": "real", "data": name, "variant": variant, "set": args.set}, ablate=VARIANTS[variant])
+
+
 def run_presets(args) -> None:
     for preset in args.presets.split(","):
         bundle = synth_bundle(Path(args.work), args.seed, PRESET_NOISE, args.frames, args.width, args.height)
@@ -395,7 +437,7 @@ def run_presets(args) -> None:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("what", choices=["synth", "probe", "kitti", "presets", "rescore", "report"])
+    p.add_argument("what", choices=["synth", "probe", "kitti", "real", "presets", "rescore", "report"])
     p.add_argument("--work", default=str(ROOT / "bench" / "out" / "agg_suite"))
     p.add_argument("--seeds", default="0,1,2")
     p.add_argument("--seed", type=int, default=0)
@@ -412,6 +454,7 @@ def main(argv=None) -> int:
                    help="probe: also move each tracklet box centre by up to this many metres per frame")
     p.add_argument("--oracle-agents", action="store_true",
                    help="probe: priors with every agent and no false one (the same camera noise)")
+    p.add_argument("--tag", default=None, help="real: the name its records carry (default: the folder's)")
     p.add_argument("--force", action="store_true")
     p.add_argument("--device", default="cpu", help="torch device training runs on (cpu, cuda, ...)")
     args = p.parse_args(argv)
@@ -423,7 +466,7 @@ def main(argv=None) -> int:
         write_report(Path(args.work), ROOT / "docs", machine=f"{platform.processor() or platform.machine()}")
         return 0
     commands = {"synth": run_synth, "probe": run_probe, "rescore": run_rescore, "kitti": run_kitti,
-                "presets": run_presets}
+                "real": run_real, "presets": run_presets}
     commands[args.what](args)
     return 0
 

@@ -442,6 +442,9 @@ def write_report(work: Path, docs: Path, machine: str) -> None:
     scenes = _load(work / "runs" / "scenes")
     lines += more_scenes_table(runs, scenes) + probe_table(scenes, "Probes on the further seeds")
     lines += other_tables(runs)
+    from bench.agg_suite_real import real_tables
+
+    lines += real_tables(_load(work / "runs" / "real"))
     lines += [f"![{m}]({m})" for m in made] + [END]
     path = docs / "BENCHMARKS.md"
     text = path.read_text() if path.is_file() else "# Benchmarks\n"
