@@ -67,7 +67,6 @@ class TickTockSchedule:
             return Phase("tick", frozenset({"camera", "static"}), 1.0, attention)
         return Phase("tock", frozenset({"agents"}), 1.0, attention)
 
-
     def settles(self, iteration: int) -> bool:
         """Whether the camera and the background, changed just before this iteration, train from it on: outside
         the alternation (warm-up, joint phase, Tick-Tock off) or at the first iteration of a Tick. A change made

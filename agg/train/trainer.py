@@ -89,9 +89,10 @@ class Trainer:
                        reset_every=max(dcfg.reset_every, 500) if cfg.opacity_reset else 0)
         self.densifier = Densifier(dcfg, self.extent) if cfg.densify else None
         # with events_at_tick_start, each opacity reset moves to the first iteration the background trains on from
-        self.reset_at = None if not cfg.events_at_tick_start else {
-            self.schedule.next_settled(r) for r in range(dcfg.reset_every, dcfg.refine_stop, dcfg.reset_every or 1)
-            if dcfg.reset_every > 0 and dcfg.is_reset(r)}
+        # (dropped if that falls after densification ends: nothing would prune what the reset leaves transparent)
+        moved = ({self.schedule.next_settled(r) for r in range(dcfg.reset_every, dcfg.refine_stop, dcfg.reset_every)}
+                 if dcfg.reset_every > 0 else set())
+        self.reset_at = {r for r in moved if r < dcfg.refine_stop} if cfg.events_at_tick_start else None
         self.topology = self._make_topology() if cfg.topology else None
         self.tracking = cfg.tracking.scaled(cfg.scale) if cfg.tracking is not None else None
         self.tracking_log: list[dict] = []  # one row per camera-tracking round
