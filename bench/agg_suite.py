@@ -216,7 +216,12 @@ def region_scores(scene_dir: Path) -> dict | None:
     if not rows or any(r["agent_pixels"] is None for r in rows):
         return None
     meta = json.loads((scene_dir / "scene.json").read_text())
-    n = meta["width"] * meta["height"]
+    return split_regions(rows, meta["width"] * meta["height"])
+
+
+def split_regions(rows: list[dict], n: int) -> dict:
+    """PSNR outside the agent masks, and the agents' shares of pixels and squared error, from ``evaluate``'s
+    per-frame rows of ``n``-pixel frames (each frame's MSE split into its agent and non-agent parts)."""
     sse = sse_ag = n_ag = 0.0
     for r in rows:
         sse += 10.0 ** (-r["psnr"] / 10.0) * n  # per-value MSE x pixels (the 3 channels cancel in the ratios)
@@ -242,13 +247,9 @@ def prior_mask_scores(scene_dir: Path) -> dict:
     metrics = evaluate(graph, bundle, sorted(set(scene.meta["test_frames"])), scene.meta["train_frames"],
                        images=resize_images(bundle.frames[:], graph.width, graph.height),
                        agent_masks=np.asarray(bundle.dynamic_masks[:]) > 0)
-    n, rows = graph.width * graph.height, metrics["per_frame"]
-    sse = sum(10.0 ** (-r["psnr"] / 10.0) * n for r in rows)
-    sse_ag = sum(10.0 ** (-r["psnr_agents"] / 10.0) * r["agent_pixels"] for r in rows if r["agent_pixels"])
-    n_ag = sum(r["agent_pixels"] or 0 for r in rows)
+    split = split_regions(metrics["per_frame"], graph.width * graph.height)
     return {"psnr": metrics["psnr"], "psnr_agents": metrics["psnr_agents"], "ssim_agents": metrics["ssim_agents"],
-            "psnr_background": float(-10.0 * np.log10(max(sse - sse_ag, 1e-12) / (n * len(rows) - n_ag))),
-            "agent_pixel_share": n_ag / (n * len(rows))}
+            "psnr_background": split["psnr_background"], "agent_pixel_share": split["agent_pixel_share"]}
 
 
 def machine_info() -> dict:

@@ -12,6 +12,8 @@ from collections import defaultdict
 
 import numpy as np
 
+from bench.agg_suite_report import _fmt, _mean_per
+
 
 def _seed(r: dict) -> int | None:
     """The training seed of a record whose only option is ``seed=N`` (0 without options); None for other options."""
@@ -30,12 +32,8 @@ def _scores(r: dict) -> dict:
             "psnr_background": pm.get("psnr_background")}
 
 
-def _f(v) -> str:
-    return "–" if v is None else f"{v:.2f}"
-
-
 def _per(vals: list[float]) -> str:
-    return f"{_f(float(np.mean(vals)))} ({', '.join(_f(v) for v in vals)})" if vals else "–"
+    return _mean_per(vals) if vals else "–"
 
 
 def real_tables(runs: list[dict]) -> list[str]:
@@ -68,7 +66,7 @@ def real_tables(runs: list[dict]) -> list[str]:
             agents = [sc[s]["psnr_agents"] for s in seeds if sc[s]["psnr_agents"] is not None]
             bg = [sc[s]["psnr_background"] for s in seeds if sc[s]["psnr_background"] is not None]
             out.append(f"| {variant} | {','.join(map(str, seeds))} | {_per([x['psnr'] for x in m])} | {_per(agents)} | "
-                       f"{_per(bg)} | {_f(float(np.mean([x['ssim'] for x in m])))} | "
+                       f"{_per(bg)} | {_fmt(float(np.mean([x['ssim'] for x in m])))} | "
                        f"{int(np.mean([x['n_gaussians'] for x in m]))} | "
                        f"{'/'.join(str(x['n_agents']) for x in m)} | "
                        f"{np.mean([mine[s]['wall_s'] for s in seeds]):.0f} | "

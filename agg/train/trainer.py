@@ -90,9 +90,10 @@ class Trainer:
         self.densifier = Densifier(dcfg, self.extent) if cfg.densify else None
         # with events_at_tick_start, each opacity reset moves to the first iteration the background trains on from
         # (dropped if that falls after densification ends: nothing would prune what the reset leaves transparent)
-        moved = ({self.schedule.next_settled(r) for r in range(dcfg.reset_every, dcfg.refine_stop, dcfg.reset_every)}
-                 if dcfg.reset_every > 0 else set())
-        self.reset_at = {r for r in moved if r < dcfg.refine_stop} if cfg.events_at_tick_start else None
+        self.reset_at = None
+        if cfg.events_at_tick_start:
+            resets = range(dcfg.reset_every, dcfg.refine_stop, dcfg.reset_every) if dcfg.reset_every > 0 else ()
+            self.reset_at = {m for m in map(self.schedule.next_settled, resets) if m < dcfg.refine_stop}
         self.topology = self._make_topology() if cfg.topology else None
         self.tracking = cfg.tracking.scaled(cfg.scale) if cfg.tracking is not None else None
         self.tracking_log: list[dict] = []  # one row per camera-tracking round
