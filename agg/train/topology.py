@@ -37,7 +37,8 @@ A static background smears a moving car along its path, and the smear's own mean
 benchmark they put the track 2.3 m behind it by the last frame; the pixels and the depth of frame t do not lag.
 Frames without statistics (held out) neither end a track nor break its run; the fragments of one object are
 joined and its outlying centroids dropped (``topology_spawn``); a track with at least ``tau_life`` consecutive
-hits spawns a new rigid agent (``graph.rigid``, created when absent; the report's ``spawned_classes`` says what the
+hits whose box stands on the road (``topology_spawn.road_contact``) and moves in the video against the refined
+cameras (``topology_motion``) spawns a new rigid agent (``graph.rigid``, created when absent; the report's ``spawned_classes`` says what the
 features suggest): its Gaussians are the track's cluster Gaussians (those not reassigned), each moved into the
 canonical frame with the track pose of the frame (among those it was clustered in) whose centre is nearest; its pose
 prior is the track, each frame's centroid read off the agent's semantic silhouette around the clusters'
@@ -70,6 +71,7 @@ from agg.train import topology_anchor as ta
 from agg.train import topology_demote as td
 from agg.train import topology_track as tt
 from agg.train.topology_demote import DemoteConfig
+from agg.train.topology_motion import MotionConfig
 from agg.train.topology_spawn import plan_spawns
 
 
@@ -115,6 +117,7 @@ class TopologyConfig:
     ground_tolerance_per_m: float | None = 0.02  # the depth prior, plus this per metre of its distance (a degree of
     # pitch: 1.7 cm/m), in the median over its valid frames; None in either: no road check (topology_spawn)
     demote: DemoteConfig = DemoteConfig()  # static, not agent-like instances become background (topology_demote)
+    motion: MotionConfig = MotionConfig()  # a spawn's box must move in the video (topology_motion)
 
     def scaled(self, factor: float) -> "TopologyConfig":
         """The same settings with the iteration milestones scaled (a preset with fewer iterations)."""
@@ -167,12 +170,18 @@ class TopologyEvolution:
     is agent-like: only pruning runs); intrinsics [T or 1, 3, 3]; width / height: the training resolution;
     scale: the bundle's ``scale`` (``metric = scale * scene_units``); depth: optional prior z-depth [T, H, W]
     (scene units, 0 = none) for the occlusion and surface tests; reserved_ids: track ids never to give a
-    spawned agent (e.g. every bundle tracklet id); num_frames: T (default: the features' or intrinsics' T)."""
+    spawned agent (e.g. every bundle tracklet id); num_frames: T (default: the features' or intrinsics' T);
+    dynamic: [T, H, W] bool prior dynamic masks; images: [T, H, W, 3] uint8 frames at the training resolution and
+    depth_confidence: [T, H, W] the depth prior's confidence, for the motion test of a planned spawn
+    (``topology_motion``; without images no spawn is tested for motion)."""
 
     def __init__(self, config: TopologyConfig, semantics, intrinsics, width: int, height: int, scale: float = 1.0,
                  depth: np.ndarray | None = None, reserved_ids=(), num_frames: int | None = None,
-                 dynamic: np.ndarray | None = None, box_half: dict[int, np.ndarray] | None = None):
+                 dynamic: np.ndarray | None = None, box_half: dict[int, np.ndarray] | None = None,
+                 images: np.ndarray | None = None, depth_confidence: np.ndarray | None = None):
         self.config = config
+        self.images = images
+        self.depth_confidence = depth_confidence
         # track id -> box half extents [3] (scene units): the tracklets' sizes, then each spawned agent's box. The
         # Gaussians' spread is no measure of an agent's size: after 660 balanced iterations the 98 % quantile of
         # the prior cars' canonical |x| was 3.5 to 5.9 m, so one car's box swallowed the missed car beside it.
@@ -368,9 +377,9 @@ class TopologyEvolution:
         changed = pruned_nodes | demoted_nodes | ({"background"} if n_bg > n_old else set())
         report = {"iteration": iteration, "reassigned": 0, "spawned": [], "spawned_classes": [],
                   "pruned": pruned + demoted, "demoted": demoted, "candidates": 0, "clusters": 0, "tracks": 0,
-                  "track_runs": [], "floating": [], "silhouette": [0, 0], "reanchored": anchored,
-                  "structure_changed": bool(pruned or demoted), "new_nodes": [], "rows_changed": sorted(changed),
-                  "bg_src": src}
+                  "track_runs": [], "floating": [], "static": [], "moving": [], "silhouette": [0, 0],
+                  "reanchored": anchored, "structure_changed": bool(pruned or demoted), "new_nodes": [],
+                  "rows_changed": sorted(changed), "bg_src": src}
         if self.sum is None or not bool((self.count > 0).any()):
             return self._finish(report)
         if self.sum.shape[1] != n_bg:

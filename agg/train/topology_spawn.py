@@ -6,7 +6,8 @@ The unmatched cluster centres are tracked over the frames that had gradient stat
 has any, and a track coasts through it without a miss); the fragments of one object (two clusters in one frame,
 a track that restarts after two frames without a cluster) are joined (``topology_track.stitch``); a joined track
 whose longest run over those frames reaches ``tau_life`` is planned, after its outlying centroids are dropped
-(``topology_track.drop_outliers``).
+(``topology_track.drop_outliers``), unless its box floats above the road (``road_contact``) or does not move in
+the video (``topology_motion``).
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ import numpy as np
 
 from agg.priors.kalman import smooth_sequence
 from agg.priors.tracklet_ground import height_above_road
+from agg.train import topology_motion as tm
 from agg.train import topology_silhouette as ts
 from agg.train import topology_track as tt
 
@@ -39,6 +41,7 @@ def plan_spawns(evo, graph, unmatched: list[list[dict]], means: np.ndarray, take
     cam_centres = np.linalg.inv(cfw)[:, :3, 3]  # [T, 3]
     n_frames = len(cfw)
     r = np.tile(np.eye(3) * params.meas_sigma ** 2, (n_frames, 1, 1))  # [T, 3, 3]
+    motion_cache: dict = {}  # the flow residuals of this evolution's cameras, computed for the first tested spawn
 
     def in_image(i: int, points: np.ndarray) -> np.ndarray:
         k = evo.K[min(i, len(evo.K) - 1)]
@@ -102,6 +105,11 @@ def plan_spawns(evo, graph, unmatched: list[list[dict]], means: np.ndarray, take
         if contact is not None and contact[0] > 1.0:  # its box floats above (or sinks below) the road: no agent
             report["floating"].append(round(contact[1], 2))
             continue
+        moving = tm.spawn_motion(evo, poses, valid, half, cfw, observed, motion_cache)
+        if moving is not None:  # its box must move in the video (topology_motion)
+            report["moving" if moving >= cfg.motion.min_share else "static"].append(round(moving, 3))
+            if moving < cfg.motion.min_share:
+                continue
         frame_of = tt.nearest_frame(means[rows], rows, [(t, c["members"]) for t, c in clusters], poses)
         claimed[rows] = True
         plans.append({"rows": rows, "frame_of": frame_of, "poses": poses, "valid": valid, "class": cls,

@@ -34,8 +34,8 @@ from agg.train.tick_tock import GROUPS, TickTockSchedule, set_trainable
 
 # what the topology log keeps of each evolution's report
 BOOSTED = ("means", "tau", "rate")  # the agent parameter groups whose rates agent_boost raises
-LOG_KEYS = ("iteration", "candidates", "clusters", "tracks", "track_runs", "floating", "silhouette", "reassigned",
-            "spawned", "pruned", "demoted", "reanchored")
+LOG_KEYS = ("iteration", "candidates", "clusters", "tracks", "track_runs", "floating", "static", "moving", "silhouette",
+            "reassigned", "spawned", "pruned", "demoted", "reanchored")
 
 
 class Cancelled(Exception):
@@ -117,10 +117,14 @@ class Trainer:
         ids = [int(i) for i in b.tracklets.ids] if b.tracklets is not None else []
         dynamic = (resize_depth(b.dynamic_masks, self.data.width, self.data.height) > 0.5
                    if b.has("dynamic_masks") else None)
+        conf = b.dense_depth_confidence if depth is not None else None
+        conf = resize_depth(conf, self.data.width, self.data.height) if conf is not None else None
+        # the frames, for the motion test of a planned spawn (topology_motion); it reads only the training frames
+        images = (self.data.images.detach().cpu().numpy() * 255.0).round().astype(np.uint8)
         return TopologyEvolution(self.cfg.evolution.scaled(self.cfg.scale), b.semantics, self.data.K.cpu().numpy(),
                                  self.data.width, self.data.height, self.metric.metres_per_unit,
                                  depth=depth, reserved_ids=ids, dynamic=dynamic,
-                                 box_half=tracklet_half_extents(b.tracklets))
+                                 box_half=tracklet_half_extents(b.tracklets), images=images, depth_confidence=conf)
 
     def _lr_scale(self) -> float:
         """Pose-rate factor 30000 / iterations, at most 15 (the balanced preset's): below ~2,000 iterations a
