@@ -38,17 +38,17 @@ benchmark they put the track 2.3 m behind it by the last frame; the pixels and t
 Frames without statistics (held out) neither end a track nor break its run; the fragments of one object are
 joined and its outlying centroids dropped (``topology_spawn``); a track with at least ``tau_life`` consecutive
 hits whose box stands on the road (``topology_spawn.road_contact``) and moves in the video against the refined
-cameras (``topology_motion``) spawns a new rigid agent (``graph.rigid``, created when absent; the report's ``spawned_classes`` says what the
-features suggest): its Gaussians are the track's cluster Gaussians (those not reassigned), each moved into the
-canonical frame with the track pose of the frame (among those it was clustered in) whose centre is nearest; its pose
-prior is the track, each frame's centroid read off the agent's semantic silhouette around the clusters'
-(``topology_silhouette``: the clusters crowd a moving car's leading edge; ``silhouette``), the centroids moved from
-the visible surface to the box centre and RTS-smoothed again (``topology_track.spawn_trajectory``: a box of the
-graph's median agent size or ``rigid_size_m``, yaw from the ground velocity, its surface weighted by solid angle,
-and Gauss-Newton passes that leave out the part of the box outside the image, for a car cut off by the image edge);
-its track id is one more than every id seen so far (never reused). At each later evolution (and when training ends)
-a spawned agent's box is re-anchored on its own rendered surface (``topology_anchor``), where a box still leads its
-car.
+cameras (``topology_motion``) spawns a new rigid agent (``graph.rigid``, created when absent; the report's
+``spawned_classes`` says what the features suggest): its Gaussians are the track's cluster Gaussians (those not
+reassigned), each moved into the canonical frame with the track pose of the frame (among those it was clustered in)
+whose centre is nearest; its pose prior is the track, each frame's centroid read off the agent's semantic
+silhouette around the clusters' (``topology_silhouette``: the clusters crowd a moving car's leading edge;
+``silhouette``), the centroids moved from the visible surface to the box centre and RTS-smoothed again
+(``topology_track.spawn_trajectory``: a box of the graph's median agent size or ``rigid_size_m``, yaw from the
+ground velocity, its surface weighted by solid angle, and Gauss-Newton passes that leave out the part of the box
+outside the image, for a car cut off by the image edge); its track id is one more than every id seen so far (never
+reused). At each later evolution (and when training ends) a spawned agent's box is re-anchored on its own rendered
+surface (``topology_anchor``), where a box still leads its car.
 **Pruning**: an instance whose ``prune_quantile`` opacity quantile is below ``prune_opacity`` or that has fewer
 than ``min_agent_gaussians`` Gaussians is removed (before matching, so dead agents absorb nothing). A false agent
 that does not die out (it keeps rendering the road it was initialised on) is **demoted** when it is static and not

@@ -3,8 +3,8 @@
 Algorithm 1 takes a spawn's evidence from the background's positional gradients and from agent-like features. With
 the built-in features (no DINOv2 weights) that evidence is weak on real video: on the dashcam sample, evolution
 spawned 15-19 agents on the guard rail, the road surface and the bushes at the horizon, and NVS PSNR fell
-(docs/BENCHMARKS.md, thirty-second session). A car the priors missed differs from those in what the video shows: it moves against the
-static world.
+(docs/BENCHMARKS.md, thirty-second session). A car the priors missed differs from those in what the video shows:
+it moves against the static world.
 
 So a planned spawn is kept only when its box moves in the video (after the road-contact test of
 ``topology_spawn``). Over the frames with gradient statistics (the training frames; held-out frames are never
