@@ -280,6 +280,19 @@ def bundle_digest(path: Path) -> str | None:
     return h.hexdigest()[:16]
 
 
+def _log_topology(name: str, t0: float):
+    """A progress callback that prints one line per topology evolution (a run's log then says what evolution did
+    while it trains, also of a run stopped before its record is written)."""
+    keys = ("candidates", "clusters", "spawned", "pruned", "floating", "static", "moving")
+
+    def progress(event: dict) -> None:
+        if event.get("event") == "topology":
+            r = event["report"]
+            print(f"{name} {time.perf_counter() - t0:7.1f} s  iteration {r.get('iteration')}:",
+                  json.dumps({k: r.get(k) for k in keys}), flush=True)
+    return progress
+
+
 def _run(args, name: str, input_path, preset, row: dict, **kwargs) -> dict | None:
     """Reconstruct ``input_path`` (at ``preset``, a name or a TrainConfig) into work/scenes/NAME and record
     work/runs/NAME.json (``row`` plus wall time, metrics and summary); None when that record exists and ``--force``
@@ -292,7 +305,8 @@ def _run(args, name: str, input_path, preset, row: dict, **kwargs) -> dict | Non
         return None
     digest = bundle_digest(input_path)  # taken before training: which input this record trained on
     t0 = time.perf_counter()
-    summary = reconstruct(input_path, work / "scenes" / name, preset, resume=False, device=args.device, **kwargs)
+    summary = reconstruct(input_path, work / "scenes" / name, preset, resume=False, device=args.device,
+                          progress=_log_topology(name, t0), **kwargs)
     row = {**row, "preset": preset if isinstance(preset, str) else preset.name, "device": args.device,
            "wall_s": round(time.perf_counter() - t0, 1), "machine": machine_info(), "bundle": digest,
            "metrics": summary.get("metrics"), "summary": summary}

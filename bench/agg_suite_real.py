@@ -3,7 +3,8 @@
 A real clip has no ground truth beyond its frames, so the table holds the held-out metrics (every 5th frame), and
 the PSNR inside and outside the priors' own dynamic masks (``prior_masks``: the same pixels for every variant).
 Training seeds (``--set seed=N``) give the spread a variant has on one clip; a Δ is AGG − variant over the seeds
-both ran.
+both ran. Runs are compared only on the same bundle (the records' digest): priors estimated again can differ, so
+each bundle of a clip gets its own table.
 """
 
 from __future__ import annotations
@@ -41,14 +42,14 @@ def real_tables(runs: list[dict]) -> list[str]:
     runs = [r for r in runs if r.get("kind") == "real" and _seed(r) is not None]
     if not runs:
         return []
-    by = defaultdict(dict)  # (data, preset) -> {(variant, seed): metrics}
+    by = defaultdict(dict)  # (data, preset, bundle digest) -> {(variant, seed): record}
     for r in runs:
-        by[(r["data"], r["preset"])][(r["variant"], _seed(r))] = r
+        by[(r["data"], r["preset"], r.get("bundle"))][(r["variant"], _seed(r))] = r
     out = ["### Real clips: each variant, over training seeds (`agg_suite.py real`)", "",
            "Held-out PSNR (every 5th frame), and inside / outside the priors' dynamic masks, in dB; mean (per "
            "training seed). Δ = AGG − variant over the seeds both ran.", ""]
-    for (data, preset), rows in sorted(by.items()):
-        out += [f"`{data}`, `{preset}`:", "",
+    for (data, preset, bundle), rows in sorted(by.items(), key=lambda kv: tuple(map(str, kv[0]))):
+        out += [f"`{data}`, `{preset}`, bundle `{bundle}`:", "",
                 "| Variant | Seeds | PSNR | Agent PSNR | Background PSNR | SSIM | Gaussians | Agents | Wall (s) | "
                 "Δ PSNR | Δ agent PSNR | Δ background PSNR |", "|" + "---|" * 12]
         agg = {s: _scores(r) for (v, s), r in rows.items() if v == "agg"}
