@@ -16,7 +16,8 @@ missed=1, false=1)`` (the most visible moving car is missing from the priors, on
 at ``--preset`` (default balanced). Every run's result is a JSON file under ``--work`` (default
 bench/out/agg_suite), so interrupted suites resume and ``report`` reads whatever has finished.
 Variants: ``agg`` (everything on), ``baseline`` (``--ablate all``: the fixed-topology GSG baseline, same code),
-``no-tick-tock``, ``no-semantic``, ``no-topology``.
+``no-tick-tock``, ``no-semantic``, ``no-topology``; ``tick-tock-only``, ``semantic-only`` and ``topology-only`` (the
+baseline plus one component, for how the components interact).
 ``probe`` runs the same synthetic variants at ``--preset`` with training options replaced (``--set NAME=VALUE``,
 ``lr.NAME`` for a learning-rate field; milestones scale with ``iterations``), to ask what a component's worth
 depends on. Its records are kind "probe" and stay out of the suite's tables. ``--agent-noise`` adds noise to the
@@ -45,7 +46,10 @@ ROOT = Path(__file__).resolve().parents[1]
 SYNTHETIC_KINDS = ("synth", "preset", "probe")  # records of synthetic bundles, which have ground-truth scores
 PRESET_NOISE = 0.5  # the preset trade runs on the seed's 0.5 m bundle
 VARIANTS = {"agg": "", "baseline": "all", "no-tick-tock": "tick-tock", "no-semantic": "semantic",
-            "no-topology": "topology"}
+            "no-topology": "topology",
+            # the baseline plus one component (probes of how the components interact; no table of their own)
+            "tick-tock-only": "semantic,topology", "semantic-only": "tick-tock,topology",
+            "topology-only": "tick-tock,semantic"}
 
 
 def bundle_dir(work: Path, seed: int, noise: float, agent_noise: float = 0.0, oracle: bool = False) -> Path:

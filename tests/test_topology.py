@@ -3,6 +3,9 @@ gradients, pruning a dead false agent, reassigning entangled background Gaussian
 
 from __future__ import annotations
 
+import copy
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
@@ -16,6 +19,7 @@ from agg.synth.corrupt import NoiseConfig
 from agg.synth.scene import SceneConfig
 from agg.synth.suite import generate, load_gt_extras, write_bundle
 from agg.train.topology import TopologyConfig, TopologyEvolution
+from agg.train.topology_motion import MotionConfig
 from agg.train.topology_track import visible_surface_offset
 
 LRS = {"means": 1e-3, "log_scales": 5e-3, "quats": 1e-3, "opacity_logits": 5e-2, "sh": 5e-3}
@@ -72,6 +76,12 @@ def test_a_missed_moving_car_is_spawned_on_its_trajectory(missed):
     missed_id = extras["index"]["missed_ids"][0]
     gt_poses = extras["world_from_agent"][missed_id - 1]  # [T, 4, 4]; GT ids are 1..K
     n_bg, n_agents = len(graph.background), graph.rigid.num_instances
+    # the motion test at half the training width (its residual shrinks wider frames: MotionConfig.max_width) reads
+    # the car's motion too (measured 0.25, 0.18 at full width), on copies of the graph and the statistics
+    half_width = copy.deepcopy(topo)
+    half_width.config = replace(topo.config, motion=MotionConfig(max_width=bundle.width // 2))
+    shrunk = half_width.evolve(copy.deepcopy(graph), None, iteration=80)
+    assert len(shrunk["spawned"]) == 1 and shrunk["moving"][0] >= topo.config.motion.min_share, shrunk["moving"]
     report = topo.evolve(graph, opt, iteration=80)
     assert len(report["spawned"]) == 1 and report["structure_changed"] and report["candidates"] > 100
     # it moves in the video: more of its box's pixels than of the frame (topology_motion; measured 0.18 here)

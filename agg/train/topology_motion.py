@@ -6,19 +6,19 @@ spawned 15-19 agents on the guard rail, the road surface and the bushes at the h
 (docs/BENCHMARKS.md, thirty-second session). A car the priors missed differs from those in what the video shows:
 it moves against the static world.
 
-So a planned spawn is kept only when its box moves in the video (after the road-contact test of
-``topology_spawn``). Over the frames with gradient statistics (the training frames; held-out frames are never
-read), the normalised flow residual of the dynamic-mask prior
-(``agg.priors.masks.dynamic_masks``: dense optical flow against the rigid flow of the camera motion and depth, and
-against the epipolar geometry) is computed at the training resolution with the **refined** cameras of the graph
-(the priors computed theirs with the noisy prior cameras: at 1.0 m of pose noise on the synthetic suite, 36 % of the
-static background read as moving). In each training frame where the spawn's box is valid and in view, its
-*excess moving share* is the fraction of the pixels of its projected box (the bounding rectangle of its eight corners,
-clipped to the image) whose residual exceeds ``threshold`` and that no prior dynamic mask gives to a known agent,
-less that fraction over the whole image (camera error makes some of every frame move: 7 % of the synthetic suite's
-static background at the first evolution of seed 0, 3 % of the dashcam sample's). The spawn is kept when the median
-of that excess over those frames reaches ``min_share``; the evolution's report lists the excess of each tested
-spawn under ``moving`` (kept) or ``static`` (dropped; its Gaussians stay in the background).
+So a planned spawn is kept only when its box moves in the video (after the road-contact test of ``topology_spawn``).
+Over the frames with gradient statistics (the training frames; held-out frames are never read), the normalised flow
+residual of the dynamic-mask prior (``agg.priors.masks.dynamic_masks``: dense optical flow against the rigid flow of
+the camera motion and depth, and against the epipolar geometry) is computed at the training resolution (at most
+``max_width`` wide, the priors' working width) with the **refined** cameras of the graph (the priors computed theirs
+with the noisy prior cameras: at 1.0 m of pose noise on the synthetic suite, 36 % of the static background read as
+moving). In each training frame where the spawn's box is valid and in view, its *excess moving share* is the
+fraction of the pixels of its projected box (the bounding rectangle of its eight corners, clipped to the image)
+whose residual exceeds ``threshold`` and that no prior dynamic mask gives to a known agent, less that fraction over
+the whole image (camera error makes some of every frame move: 7 % of the synthetic suite's static background at the
+first evolution of seed 0, 3 % of the dashcam sample's). The spawn is kept when the median of that excess over those
+frames reaches ``min_share``; the evolution's report lists the excess of each tested spawn under ``moving`` (kept)
+or ``static`` (dropped; its Gaussians stay in the background).
 
 Measured (docs/TRAINING.md "Spawns must move"): at the first evolution of the synthetic suite (balanced, 1.0 m),
 the missed car's planned box read 0.064-0.309 over seeds 0-8; the spawns planned at the first evolution on the
@@ -42,6 +42,8 @@ class MotionConfig:
     enabled: bool = True  # False: spawns need no motion evidence (the evolution's report then lists none)
     min_share: float = 0.04  # a spawn's box needs this median share of moving pixels over its training frames
     threshold: float = 1.0  # a pixel moves where its normalised residual exceeds this (MaskConfig.threshold)
+    max_width: int = 640  # the residual is computed at most this wide (the priors' working width): wider training
+    # frames are shrunk for it (area; their depth, confidence and masks nearest), which bounds its cost per evolution
 
 
 _CORNERS = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], np.float64)  # [8, 3]
@@ -117,8 +119,28 @@ def spawn_motion(evo, poses: np.ndarray, valid: np.ndarray, half: np.ndarray, ca
     if not cfg.motion.enabled or evo.images is None:
         return None
     if "residual" not in cache:
-        cache["residual"] = residuals(evo.images, evo.K[0], camera_from_world, evo.depth, np.flatnonzero(observed),
-                                      evo.depth_confidence)
-    share, _ = moving_share(cache["residual"], evo.dynamic, poses, valid, half, camera_from_world, evo.K,
-                            evo.width, evo.height, cfg.near_m * evo.unit, cfg.motion.threshold)
+        cache.update(_analysis_inputs(evo, np.flatnonzero(observed), camera_from_world))
+    w, h = cache["size"]
+    share, _ = moving_share(cache["residual"], cache["known"], poses, valid, half, camera_from_world, cache["K"], w, h,
+                            cfg.near_m * evo.unit, cfg.motion.threshold)
     return share
+
+
+def _analysis_inputs(evo, frames: np.ndarray, camera_from_world: np.ndarray) -> dict:
+    """The residuals of ``frames`` at the analysis size (training size, at most ``max_width`` wide), with the
+    intrinsics [T or 1, 3, 3], the size (w, h) and the known-agent masks (or None) at that size. The clip's
+    intrinsics are taken as constant (those of the first frame) for the flow; boxes use each frame's own."""
+    from agg.io.video import scale_intrinsics
+    from agg.train.data import resize_depth, resize_images, training_size
+
+    w, h, _ = training_size(evo.width, evo.height, evo.config.motion.max_width)
+    images, depth, conf, known, K = evo.images, evo.depth, evo.depth_confidence, evo.dynamic, evo.K  # noqa: N806
+    if (w, h) != (evo.width, evo.height):
+        images = (resize_images(images, w, h).numpy() * 255.0).round().astype(np.uint8)
+        depth = None if depth is None else resize_depth(depth, w, h)
+        conf = None if conf is None else resize_depth(conf, w, h)
+        known = None if known is None else resize_depth(known.astype(np.float32), w, h) > 0.5
+        K = np.stack([scale_intrinsics(k, (evo.width, evo.height), (w, h)) for k in K])  # noqa: N806
+    res = residuals(images, K[min(int(frames[0]), len(K) - 1)] if len(frames) else K[0], camera_from_world, depth,
+                    frames, conf)
+    return {"residual": res, "K": K, "size": (w, h), "known": known}
