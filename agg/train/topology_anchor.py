@@ -3,11 +3,11 @@
 A spawned agent's box comes from its track: per-frame centroids moved from the visible surface to the box centre
 (``topology_track.spawn_trajectory``). Where they were the centroids of the gradient clusters, which crowd a moving
 car's leading edge, the spawned box sat ahead of the car (seed 2 of the synthetic suite: a median 1.1 m along its
-heading at 0 m pose noise, 0.85-0.95 m on tests/test_topology.py's clip); they now come from the agent's semantic
-silhouette (``topology_silhouette``), and this module is the second line, for a box that still leads (a cut
-silhouette, features that miss part of the car). Training cannot move it back: shifting the box origin and the
-canonical Gaussians together does not change a render (a gauge freedom), so nothing pulls the origin to the car's
-centre.
+heading at 0 m pose noise; 0.85-0.95 m on tests/test_topology.py's clip, whose fit then aimed at near-black frames);
+they now come from the agent's semantic silhouette (``topology_silhouette``), and this module is the second line,
+for a box that still leads (a cut silhouette, features that miss part of the car). Training cannot move it back:
+shifting the box origin and the canonical Gaussians together does not change a render (a gauge freedom), so nothing
+pulls the origin to the car's centre.
 
 Once the agent has been trained its own Gaussians show where the car is. In each valid frame t:
 

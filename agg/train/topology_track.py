@@ -270,9 +270,10 @@ def visible_surface_offset(half: np.ndarray, camera: np.ndarray, inside=None, sa
     / r^2``: each visible face is sampled on a ``samples`` x ``samples`` grid with those weights. Near a car this
     matters: on seed 2 of the synthetic suite an area-weighted (orthographic) model missed the centroid of the
     car's pixels by 0.5 m in depth at 7 m and by 1 m the other way at 5.5 m. (One frame's pixels add a
-    ``1 / cos^3`` of the angle off the optical axis; with that term the spawned car of seed 2 was within 1 m on
-    0.46 of its frames instead of all of them, and on the unit scene of tests/test_topology.py 1.0-1.07 m off
-    instead of 0.85-0.95 m: the Gaussians of a car that crosses the image follow no single frame's grid.)
+    ``1 / cos^3`` of the angle off the optical axis; with that term the spawned car of seed 2 was within 1 m on 0.46
+    of its frames instead of all of them, and on the unit scene of tests/test_topology.py, with its fit of then on
+    near-black frames, 1.0-1.07 m off instead of 0.85-0.95 m: the Gaussians of a car that crosses the image follow
+    no single frame's grid.)
     ``inside``: optional test of box-frame points [P, 3] -> bool [P], the points that project inside the image.
     A car cut off by the image edge shows only part of its faces, and only the samples inside count (with none
     inside, all do). Subtracting the (rotated) offset from a measured visible centroid recovers the box centre."""
