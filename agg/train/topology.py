@@ -171,9 +171,9 @@ class TopologyEvolution:
     scale: the bundle's ``scale`` (``metric = scale * scene_units``); depth: optional prior z-depth [T, H, W]
     (scene units, 0 = none) for the occlusion and surface tests; reserved_ids: track ids never to give a
     spawned agent (e.g. every bundle tracklet id); num_frames: T (default: the features' or intrinsics' T);
-    dynamic: [T, H, W] bool prior dynamic masks; images: [T, H, W, 3] uint8 frames at the training resolution and
-    depth_confidence: [T, H, W] the depth prior's confidence, for the motion test of a planned spawn
-    (``topology_motion``; without images no spawn is tested for motion)."""
+    dynamic: [T, H, W] bool prior dynamic masks; images: [T, H, W, 3] frames at the training resolution (uint8, or
+    float in [0, 1]) and depth_confidence: [T, H, W] the depth prior's confidence, for the motion test of a planned
+    spawn (``topology_motion``; without images no spawn is tested for motion)."""
 
     def __init__(self, config: TopologyConfig, semantics, intrinsics, width: int, height: int, scale: float = 1.0,
                  depth: np.ndarray | None = None, reserved_ids=(), num_frames: int | None = None,

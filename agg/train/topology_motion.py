@@ -137,7 +137,7 @@ def _analysis_inputs(evo, frames: np.ndarray, camera_from_world: np.ndarray) -> 
     w, h, _ = training_size(evo.width, evo.height, evo.config.motion.max_width)
     images, depth, conf, known, K = evo.images, evo.depth, evo.depth_confidence, evo.dynamic, evo.K  # noqa: N806
     if (w, h) != (evo.width, evo.height):
-        images = (resize_images(images, w, h).numpy() * 255.0).round().astype(np.uint8)
+        images = resize_images(images, w, h).numpy()  # [T, h, w, 3] float in [0, 1]
         depth = None if depth is None else resize_depth(depth, w, h)
         conf = None if conf is None else resize_depth(conf, w, h)
         known = None if known is None else resize_depth(known.astype(np.float32), w, h) > 0.5

@@ -107,8 +107,9 @@ def plan_spawns(evo, graph, unmatched: list[list[dict]], means: np.ndarray, take
             continue
         moving = tm.spawn_motion(evo, poses, valid, half, cfw, observed, motion_cache)
         if moving is not None:  # its box must move in the video (topology_motion)
-            report["moving" if moving >= cfg.motion.min_share else "static"].append(round(moving, 3))
-            if moving < cfg.motion.min_share:
+            kept = moving >= cfg.motion.min_share
+            report["moving" if kept else "static"].append(round(moving, 3))
+            if not kept:
                 continue
         frame_of = tt.nearest_frame(means[rows], rows, [(t, c["members"]) for t, c in clusters], poses)
         claimed[rows] = True

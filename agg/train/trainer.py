@@ -120,7 +120,7 @@ class Trainer:
         conf = b.dense_depth_confidence if depth is not None else None
         conf = resize_depth(conf, self.data.width, self.data.height) if conf is not None else None
         # the frames, for the motion test of a planned spawn (topology_motion); it reads only the training frames
-        images = (self.data.images.detach().cpu().numpy() * 255.0).round().astype(np.uint8)
+        images = self.data.images.detach().cpu().numpy()  # [T, H, W, 3] float in [0, 1] (a view on the CPU)
         return TopologyEvolution(self.cfg.evolution.scaled(self.cfg.scale), b.semantics, self.data.K.cpu().numpy(),
                                  self.data.width, self.data.height, self.metric.metres_per_unit,
                                  depth=depth, reserved_ids=ids, dynamic=dynamic,
