@@ -399,6 +399,9 @@ def print_metrics(metrics: dict, summary: dict | None) -> None:
         keep = ("iterations", "n_gaussians", "n_agents", "agents_spawned", "agents_pruned", "final_train_psnr",
                 "seconds_priors", "seconds_train", "seconds_total")
         print("training: " + ", ".join(f"{k} {summary[k]}" for k in keep if summary.get(k) is not None))
+        gate = summary.get("semantic") or {}
+        if gate.get("active") is False:
+            print(f"semantic loss: off, {gate.get('reason')}")
 
 
 def _raise_interrupt(signum, frame) -> None:

@@ -48,9 +48,27 @@ def test_reconstruct_writes_a_complete_scene(scene, capsys):
     assert meta["metric_scale"]["source"] == "metric" and meta["metric_scale"]["metres_per_unit"] == 1.0
     assert json.loads((scene / "graph.json").read_text())["meta"]["metric_scale"] == meta["metric_scale"]
     assert set(meta["summary"]["nodes"]) >= {"camera", "background", "rigid"}
+    gate = meta["summary"]["semantic"]  # the suite's class features separate the priors' masks: Eq. 3 stays on
+    assert gate["active"] and gate["contrast_ag"] > 1.5 and gate["contrast_bg"] > 1.5 and meta["semantic"] == gate
     log = meta["summary"]["topology"]  # one row per evolution of the tiny preset
     assert log and all({"iteration", "candidates", "clusters", "tracks", "track_runs", "spawned", "pruned"} <= set(r)
                        for r in log)
+
+
+def test_the_semantic_gate_is_a_reconstruct_option(scene, tmp_path, capsys):
+    bundle = str(scene.parent / "bundle")
+    quick = ["--preset", "tiny", "--iterations", "4", "--no-eval"]
+    assert main(["reconstruct", bundle, "-o", str(tmp_path / "strict"), *quick, "--semantic-min-contrast", "1000"]) == 0
+    out = capsys.readouterr().out
+    assert "semantic loss: off, the attention maps do not separate the priors' dynamic masks" in out and "< 1000" in out
+    meta = json.loads((tmp_path / "strict" / "scene.json").read_text())
+    assert meta["config"]["semantic_min_contrast"] == 1000 and not meta["summary"]["semantic"]["active"]
+    assert main(["reconstruct", bundle, "-o", str(tmp_path / "paper"), *quick, "--semantic-min-contrast", "none"]) == 0
+    meta = json.loads((tmp_path / "paper" / "scene.json").read_text())
+    assert meta["config"]["semantic_min_contrast"] is None and meta["summary"]["semantic"]["active"]
+    with pytest.raises(SystemExit) as exc:
+        main(["reconstruct", bundle, "-o", str(tmp_path / "bad"), "--semantic-min-contrast", "-1"])
+    assert exc.value.code == 2 and "must be > 0" in capsys.readouterr().err
 
 
 def test_eval_prints_the_stable_json_keys(scene, capsys):

@@ -25,6 +25,9 @@ def add_parser(subparsers) -> None:
     p.add_argument("--gt-poses", action="store_true",
                    help="use the bundle's ground-truth camera poses (gt/ sidecar) instead of the estimates")
     p.add_argument("--iterations", type=int, help="override the preset's iteration count")
+    p.add_argument("--semantic-min-contrast", type=_contrast, metavar="RATIO|none",
+                   help="train without the semantic loss when the attention maps separate the priors' dynamic masks "
+                        "by less than RATIO (default 1.5); 'none' keeps it on whatever the maps (the paper's rule)")
     p.add_argument("--max-frames", type=int, metavar="N", help="keep at most N frames of a video")
     p.add_argument("--intrinsics", metavar="FILE|fx,fy,cx,cy", help="camera intrinsics (see agg priors)")
     p.add_argument("--no-resume", action="store_true", help="start over even if SCENE has a checkpoint")
@@ -33,6 +36,19 @@ def add_parser(subparsers) -> None:
     p.add_argument("--device", default="cpu", help="torch device training runs on: cpu (default), cuda, cuda:N "
                                                    "(the priors run on the CPU)")
     p.set_defaults(func=run)
+
+
+def _contrast(text: str) -> float | str:
+    """``--semantic-min-contrast``: a ratio > 0, or "none" (the loss always on)."""
+    if text.lower() == "none":
+        return "none"
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a ratio or 'none', got {text!r}") from None
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"the ratio must be > 0, got {text!r}")
+    return value
 
 
 class _Bar:
@@ -81,7 +97,10 @@ def run(args: argparse.Namespace) -> int:
 
     bar = _Bar()
     try:
-        overrides = {"iterations": args.iterations} if args.iterations else None
+        overrides = {"iterations": args.iterations} if args.iterations else {}
+        given = args.semantic_min_contrast
+        if given is not None:
+            overrides["semantic_min_contrast"] = None if given == "none" else given
         summary = reconstruct(args.input, args.output, args.preset, progress=bar, resume=not args.no_resume,
                               overrides=overrides, ablate=args.ablate or None, gt_poses=args.gt_poses,
                               evaluate=not args.no_eval, max_frames=args.max_frames, intrinsics=args.intrinsics,
@@ -98,6 +117,9 @@ def run(args: argparse.Namespace) -> int:
         print(f"scene: {args.output}  nodes: {', '.join(summary['nodes'])}  gaussians: {summary['n_gaussians']}  "
               f"agents: {summary['n_agents']} (+{len(summary['agents_spawned'])} spawned, "
               f"-{len(summary['agents_pruned'])} pruned)  train: {summary['seconds_train']:.0f} s")
+        gate = summary.get("semantic") or {}
+        if gate.get("active") is False:
+            print(f"semantic loss: off, {gate['reason']}")
         if m:
             agents = "n/a" if m.get("psnr_agents") is None else f"{m['psnr_agents']:.2f} dB"
             print(f"NVS ({m['n_test_frames']} held-out frames): PSNR {m['psnr']:.2f} dB  SSIM {m['ssim']:.3f}  "

@@ -73,6 +73,8 @@ class TrainConfig:
     lambda_sem: float = 0.8
     delta: float = 1e-6
     attention_norm: str = "global"  # "global" (paper: clip-wide min/max) | "percentile" (1st/99th percentiles)
+    semantic_min_contrast: float | None = 1.5  # the semantic loss is off for a scene whose attention maps do not
+    # separate the priors' dynamic masks by this ratio (agg.train.semantic.semantic_gate; None: always on)
     # densification (iteration numbers at the paper's scale too)
     densify: bool = True
     densify_from: int = 500

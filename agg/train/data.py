@@ -12,7 +12,7 @@ from torch import Tensor
 from agg.eval.interpolate import split_frames
 from agg.io.bundle import SceneBundle
 from agg.io.video import scale_intrinsics
-from agg.train.semantic import attention_maps
+from agg.train.semantic import attention_maps, semantic_gate
 
 
 @dataclass
@@ -25,6 +25,7 @@ class TrainData:
     m_ag: Tensor | None  # [T, H, W] semantic attention (agent channels)
     train_frames: list[int]
     test_frames: list[int]
+    semantic: dict | None = None  # semantic_gate's report (None: no attention maps, or not checked)
 
     @property
     def num_frames(self) -> int:
@@ -36,7 +37,7 @@ class TrainData:
             return None if x is None else x.to(device)
 
         return TrainData(self.images.to(device), self.K.to(device), self.width, self.height, move(self.m_bg),
-                         move(self.m_ag), list(self.train_frames), list(self.test_frames))
+                         move(self.m_ag), list(self.train_frames), list(self.test_frames), self.semantic)
 
 
 def training_size(width: int, height: int, max_width: int) -> tuple[int, int, float]:
@@ -59,17 +60,26 @@ def resize_images(frames: np.ndarray, width: int, height: int) -> Tensor:
 
 
 def load_train_data(bundle: SceneBundle, max_width: int, attention_norm: str = "global",
-                    eval_every: int = 5) -> TrainData:
+                    eval_every: int = 5, min_contrast: float | None = None) -> TrainData:
+    """The training frames, intrinsics and attention maps at the training size. With ``min_contrast`` the attention
+    maps are checked against the priors' dynamic masks over the training frames (``semantic_gate``) and dropped
+    when they do not separate them: the semantic loss is then off (``TrainData.semantic`` says why)."""
     w, h, _ = training_size(bundle.width, bundle.height, max_width)
     images = resize_images(bundle.frames[:], w, h)
     K = torch.as_tensor(np.stack([scale_intrinsics(k, (bundle.width, bundle.height), (w, h))  # noqa: N806
                                   for k in bundle.intrinsics]), dtype=torch.float32)  # [T, 3, 3]
-    m_bg = m_ag = None
+    m_bg = m_ag = gate = None
     sem = bundle.semantics
+    train, test = split_frames(bundle.num_frames, eval_every)
     if sem is not None:
         m_bg, m_ag = attention_maps(sem.features, sem.C_bg, sem.C_ag, h, w, attention_norm)
-    train, test = split_frames(bundle.num_frames, eval_every)
-    return TrainData(images, K, w, h, m_bg, m_ag, train, test)
+        masks = bundle.dynamic_masks
+        if masks is not None:
+            masks = torch.as_tensor(resize_depth(np.asarray(masks)[train], w, h) > 0.5)  # [T_train, h, w]
+        gate = semantic_gate(m_bg[train], m_ag[train], masks, min_contrast)
+        if not gate["active"]:
+            m_bg = m_ag = None
+    return TrainData(images, K, w, h, m_bg, m_ag, train, test, gate)
 
 
 def resize_depth(depth: np.ndarray, width: int, height: int) -> np.ndarray:

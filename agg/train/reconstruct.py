@@ -146,7 +146,10 @@ def reconstruct(input_path: str | Path, scene_dir: str | Path, preset: str | Tra
         bundle = with_gt_poses(bundle, scene_dir / "bundle_gt_poses")
     t_priors = time.perf_counter() - t0
     seed_everything(cfg.seed)
-    data = load_train_data(bundle, cfg.max_width, cfg.attention_norm, cfg.eval_every).to(dev)
+    data = load_train_data(bundle, cfg.max_width, cfg.attention_norm, cfg.eval_every,
+                           cfg.semantic_min_contrast).to(dev)
+    if data.semantic is not None and not cfg.semantic:
+        data.semantic = {**data.semantic, "active": False, "reason": "ablated (--ablate semantic)"}
     metric = estimate_metric_scale(bundle)  # metres per scene unit (agg/priors/metric_scale.py)
     ckpt = scene_dir / "checkpoint.pt"
     meta = {"version": 1, "scene_id": scene_dir.name, "bundle": str(Path(bundle.path).resolve()),
@@ -154,7 +157,7 @@ def reconstruct(input_path: str | Path, scene_dir: str | Path, preset: str | Tra
             "width": data.width, "height": data.height, "K": data.K.tolist(), "train_frames": data.train_frames,
             "test_frames": data.test_frames, "preset": cfg.name, "ablate": sorted(cfg.ablate),
             "gt_poses": bool(gt_poses), "config": cfg.as_dict(), "metric_scale": metric.as_dict(),
-            "device": str(dev), "status": "training"}
+            "device": str(dev), "semantic": data.semantic, "status": "training"}
     (scene_dir / "scene.json").write_text(json.dumps(meta, indent=1))
     kwargs = {"progress": progress, "should_stop": should_stop, "checkpoint_ok": checkpoint_ok, "metric": metric}
     if resume and ckpt.is_file():
@@ -173,7 +176,7 @@ def reconstruct(input_path: str | Path, scene_dir: str | Path, preset: str | Tra
                "seconds_train": round(t_train, 2), "initial": initial, "n_gaussians": graph.num_gaussians(),
                "n_agents": graph.num_agents, "nodes": _node_names(graph), "agents_spawned": trainer.spawned,
                "agents_pruned": trainer.pruned, "topology": trainer.topology_log,
-               "reanchored": trainer.reanchored,
+               "reanchored": trainer.reanchored, "semantic": data.semantic,
                "tracking": trainer.tracking_log,
                "final_train_psnr": _recent_psnr(trainer.history)}
     from agg.export import export_scene
