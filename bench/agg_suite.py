@@ -271,14 +271,21 @@ def machine_info() -> dict:
             "numpy": np.__version__, "torch_threads": torch.get_num_threads(), "gpu": gpu}
 
 
+REPORT_FILES = ("priors_summary.json",)  # what ``agg priors`` measured (its timings change from run to run)
+REPORT_DIRS = ("previews",)  # ... and its PNG previews: neither is training input
+
+
 def bundle_digest(path: Path) -> str | None:
-    """SHA-256 (16 hex digits) over a bundle folder's files, names and contents: bundles are cached in the work
-    folder and not tracked, so a record says which one it trained on (runs compared side by side must share it)."""
+    """SHA-256 (16 hex digits) over a bundle folder's files, names and contents, reports and previews left out:
+    bundles are cached in the work folder and not tracked, so a record says which one it trained on (runs compared
+    side by side must share it). Before 2026-12-04's thirty-fourth session the digest also read
+    ``priors_summary.json``, so the same priors estimated twice got two digests."""
     path = Path(path)
     if not path.is_dir():
         return None
     h = hashlib.sha256()
-    for f in sorted(p for p in path.rglob("*") if p.is_file()):
+    for f in sorted(p for p in path.rglob("*") if p.is_file() and p.name not in REPORT_FILES
+                    and not set(p.relative_to(path).parts[:-1]) & set(REPORT_DIRS)):
         h.update(str(f.relative_to(path)).encode())
         h.update(f.read_bytes())
     return h.hexdigest()[:16]

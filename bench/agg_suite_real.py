@@ -3,8 +3,9 @@
 A real clip has no ground truth beyond its frames, so the table holds the held-out metrics (every 5th frame), and
 the PSNR inside and outside the priors' own dynamic masks (``prior_masks``: the same pixels for every variant).
 Training seeds (``--set seed=N``) give the spread a variant has on one clip; a Δ is AGG − variant over the seeds
-both ran. Runs are compared only on the same bundle (the records' digest): priors estimated again can differ, so
-each bundle of a clip gets its own table.
+both ran. Runs are compared only on the same bundle (the records' digest), so each bundle of a clip gets its own
+table: priors estimated by other code differ. (The digests before 2026-12-04's thirty-fourth session also read the
+priors' timings, so one clip's tables from then may hold one bundle under two digests.)
 """
 
 from __future__ import annotations
