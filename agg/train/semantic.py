@@ -11,7 +11,7 @@ contrast under min / max (docs/PRIORS.md). The maps are bilinearly resized to th
 **The maps must separate the agents** (``semantic_gate``). Eq. 3 routes the error to the background in a Tick and
 to the agents in a Tock only as far as M_bg and M_ag differ between agent and background pixels. The contrast of
 M_ag is its mean on the priors' dynamic masks over its mean elsewhere, that of M_bg the other way round. The suite's
-synthetic features give 8.6-26 and 5.5-7; the builtin descriptors on the dashcam sample give 1.16 and 1.09, where
+synthetic features give 8.5-26 and 5.1-7.3; the builtin descriptors on the dashcam sample give 1.16 and 1.08, where
 Eq. 3 is a near-uniform extra L1 that measured to cost the clip's held-out PSNR (docs/TRAINING.md "The semantic loss
 needs maps that separate the agents"). Below ``min_contrast`` on either map, or where no mask pixels measure it,
 the loss is off for the scene.
