@@ -294,7 +294,7 @@ def bundle_digest(path: Path) -> str | None:
 def _log_topology(name: str, t0: float):
     """A progress callback that prints one line per topology evolution (a run's log then says what evolution did
     while it trains, also of a run stopped before its record is written)."""
-    keys = ("candidates", "clusters", "spawned", "pruned", "floating", "static", "moving")
+    keys = ("candidates", "clusters", "spawned", "pruned", "floating", "static", "moving", "boxed")
 
     def progress(event: dict) -> None:
         if event.get("event") == "topology":

@@ -82,6 +82,17 @@ def test_a_missed_moving_car_is_spawned_on_its_trajectory(missed):
     half_width.config = replace(topo.config, motion=MotionConfig(max_width=bundle.width // 2))
     shrunk = half_width.evolve(copy.deepcopy(graph), None, iteration=80)
     assert len(shrunk["spawned"]) == 1 and shrunk["moving"][0] >= topo.config.motion.min_share, shrunk["moving"]
+    # with a spawn box (spawn_box_slack, off by default) the spawn takes only the planned rows inside its box, the
+    # guessed car size grown by the slack; the others (the car's smear along its path) stay in the background, and
+    # the node keeps the box, so the trainer confines the agent to it
+    boxed = copy.deepcopy(topo)
+    boxed.config = replace(topo.config, spawn_box_slack=0.25)
+    boxed_graph = copy.deepcopy(graph)
+    in_box = boxed.evolve(boxed_graph, None, iteration=80)
+    assert len(in_box["spawned"]) == 1 and len(in_box["boxed"]) == 1
+    node, k = boxed_graph.rigid, boxed_graph.rigid.num_instances - 1
+    assert np.allclose(node.half_extents[k].numpy(), boxed.box_half[in_box["spawned"][0]] * 1.25, rtol=1e-5)
+    assert (node.gaussians.means[node.instance == k].abs() <= node.half_extents[k] + 1e-5).all()
     report = topo.evolve(graph, opt, iteration=80)
     assert len(report["spawned"]) == 1 and report["structure_changed"] and report["candidates"] > 100
     # it moves in the video: more of its box's pixels than of the frame (topology_motion; measured 0.18 here)
@@ -107,6 +118,12 @@ def test_a_missed_moving_car_is_spawned_on_its_trajectory(missed):
     # its Gaussians left the background (the report's keep mask says which rows), the optimiser follows
     moved = int((graph.rigid.instance == j).sum())
     assert moved >= 100 and len(graph.background) == n_bg - moved == len(report["bg_src"])
+    # by default it took every planned row and is left free; with the spawn box it took the share inside the box
+    assert report["boxed"] == [] and torch.isinf(graph.rigid.half_extents[j]).all()
+    inside = int((boxed_graph.rigid.instance == boxed_graph.rigid.num_instances - 1).sum())
+    print(f"spawned rows: {inside} inside the box of {moved} planned ({in_box['boxed']})")
+    assert in_box["boxed"] == [round(inside / moved, 3)] and inside < moved
+    assert len(boxed_graph.background) == n_bg - inside
     assert opt.state[graph.background.means]["exp_avg"].shape[0] == len(graph.background)
     assert topo.sum is None  # statistics reset after an evolution
     # the new agent renders where the car is: its Gaussians cover the missed car's pixels in a middle frame

@@ -107,6 +107,9 @@ class TopologyConfig:
     min_speed_m: float = 0.05  # per frame: slower tracks take their yaw from the cluster's ground principal axis
     rigid_size_m: tuple[float, float, float] = (4.5, 1.8, 1.6)  # (l, w, h) of a spawned agent when the graph
     nonrigid_size_m: tuple[float, float, float] = (0.7, 0.7, 1.75)  # has no instance of its class to copy
+    spawn_box_slack: float | None = None  # a spawned agent's box is that size grown by this fraction (where it is
+    # placed is an estimate); it takes only the planned rows inside the box and is confined to it like a prior
+    # agent. None (default): it takes every planned row and is left free (docs/TRAINING.md, "The spawn box")
     reset_after_evolve: bool = True  # start the gradient statistics afresh after each evolution
     silhouette: bool = True  # a spawn's per-frame centroid from its semantic silhouette, not from its gradient
     # clusters, which crowd a moving car's leading edge (topology_silhouette)
@@ -377,7 +380,7 @@ class TopologyEvolution:
         changed = pruned_nodes | demoted_nodes | ({"background"} if n_bg > n_old else set())
         report = {"iteration": iteration, "reassigned": 0, "spawned": [], "spawned_classes": [],
                   "pruned": pruned + demoted, "demoted": demoted, "candidates": 0, "clusters": 0, "tracks": 0,
-                  "track_runs": [], "floating": [], "static": [], "moving": [], "silhouette": [0, 0],
+                  "track_runs": [], "floating": [], "static": [], "moving": [], "boxed": [], "silhouette": [0, 0],
                   "reanchored": anchored, "structure_changed": bool(pruned or demoted), "new_nodes": [],
                   "rows_changed": sorted(changed), "bg_src": src}
         if self.sum is None or not bool((self.count > 0).any()):
@@ -481,17 +484,18 @@ class TopologyEvolution:
             params = spawned[0]
             for extra in spawned[1:]:
                 append_rows(params, extra)
-            # a spawned agent's box is a guess (the median agent's size, placed by gradient clusters that crowd the
-            # car's leading edge) and its Gaussians come from a smeared background: its node leaves it unconfined
+            # the box the node confines each spawn to: its size guessed, grown for where it is placed (None: free)
+            boxes_half = torch.as_tensor(np.stack([np.full(3, np.inf) if p["box"] is None else p["box"]
+                                                   for p in spawn]), dtype=torch.float32)  # [k, 3]
             if graph.rigid is None:
                 dev = bg.means.device
-                graph.rigid = RigidAgents(params, instance, wfb, valid, torch.as_tensor(ids)).to(dev)
+                graph.rigid = RigidAgents(params, instance, wfb, valid, torch.as_tensor(ids), boxes_half).to(dev)
                 graph.rigid.speed_free.fill_(True)  # its track's speed is an estimate: trained (nodes/rigid.py)
                 report["new_nodes"].append("rigid")
             else:
                 graph.rigid.add_instances(params, instance, wfb, valid,
                                           torch.as_tensor(ids, device=graph.rigid.track_ids.device), optimizer,
-                                          speed_free=True)
+                                          half_extents=boxes_half, speed_free=True)
             rows_changed.add("rigid")
             report["spawned"] = ids
             self.box_half.update({tid: np.asarray(p["half"], np.float64) for tid, p in zip(ids, spawn)

@@ -34,8 +34,8 @@ from agg.train.tick_tock import GROUPS, TickTockSchedule, set_trainable
 
 # what the topology log keeps of each evolution's report
 BOOSTED = ("means", "tau", "rate")  # the agent parameter groups whose rates agent_boost raises
-LOG_KEYS = ("iteration", "candidates", "clusters", "tracks", "track_runs", "floating", "static", "moving", "silhouette",
-            "reassigned", "spawned", "pruned", "demoted", "reanchored")
+LOG_KEYS = ("iteration", "candidates", "clusters", "tracks", "track_runs", "floating", "static", "moving", "boxed",
+            "silhouette", "reassigned", "spawned", "pruned", "demoted", "reanchored")
 
 
 class Cancelled(Exception):
