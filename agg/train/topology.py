@@ -485,7 +485,7 @@ class TopologyEvolution:
             for extra in spawned[1:]:
                 append_rows(params, extra)
             # the box the node confines each spawn to: its size guessed, grown for where it is placed (None: free)
-            boxes_half = torch.as_tensor(np.stack([np.full(3, np.inf) if p["box"] is None else p["box"]
+            boxes_half = torch.as_tensor(np.stack([np.full(3, np.inf) if p.get("box") is None else p["box"]
                                                    for p in spawn]), dtype=torch.float32)  # [k, 3]
             if graph.rigid is None:
                 dev = bg.means.device
