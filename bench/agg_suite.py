@@ -367,6 +367,11 @@ def _probe_value(kind: type, value: str):
         return value.lower() == "true"
     if kind is tuple:
         return tuple(int(v) for v in value.split(","))
+    if kind is type(None):  # an optional setting that is off by default: a number switches it on
+        try:
+            return float(value)
+        except ValueError:
+            raise SystemExit(f"--set: {value!r} is not a number") from None
     return kind(value)
 
 
