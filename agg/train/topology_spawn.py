@@ -9,8 +9,8 @@ whose longest run over those frames reaches ``tau_life`` is planned, after its o
 (``topology_track.drop_outliers``), unless its box floats above the road (``road_contact``) or does not move in
 the video (``topology_motion``). Its member rows are its clusters' Gaussians; with ``spawn_box_slack`` set (off by
 default) only those inside its box (the guessed size grown by that slack) at the frame each is canonicalised at
-(``in_own_box``), the others staying in the background, and a plan left with fewer than ``min_agent_gaussians``
-rows is dropped.
+(``topology_track.inside_box``), the others staying in the background, and a plan left with fewer than
+``min_agent_gaussians`` rows is dropped.
 """
 
 from __future__ import annotations
@@ -118,7 +118,7 @@ def plan_spawns(evo, graph, unmatched: list[list[dict]], means: np.ndarray, take
         box = None
         if cfg.spawn_box_slack is not None:  # only the rows inside its box: the agent models its object
             box = half * (1.0 + cfg.spawn_box_slack)
-            inside = in_own_box(means[rows], poses[frame_of], box)
+            inside = tt.inside_box(means[rows], poses[frame_of], box)
             report["boxed"].append(round(float(inside.mean()), 3))
             rows, frame_of = rows[inside], frame_of[inside]
             if len(rows) < max(cfg.min_agent_gaussians, 1):
@@ -171,13 +171,6 @@ def road_contact(evo, poses: np.ndarray, valid: np.ndarray, half: np.ndarray,
         ratios.append(abs(h) / ((cfg.ground_tolerance_m + cfg.ground_tolerance_per_m * pc[2] / u) * u))
         heights.append(h / u)
     return (float(np.median(ratios)), float(np.median(heights))) if ratios else None
-
-
-def in_own_box(points: np.ndarray, world_from_box: np.ndarray, box: np.ndarray) -> np.ndarray:
-    """[M] bool: each world point [M, 3] inside its own box pose ``world_from_box`` [M, 4, 4] of half extents
-    ``box`` [3] (a planned row at the frame it is canonicalised at)."""
-    local = np.einsum("mji,mj->mi", world_from_box[:, :3, :3], points - world_from_box[:, :3, 3])  # R^T (p - c)
-    return np.all(np.abs(local) <= box, axis=1)
 
 
 def spawn_half(graph, cls: str, cfg, unit: float, box_half: dict | None = None) -> np.ndarray:

@@ -159,8 +159,9 @@ def tracklet_half_extents(tracklets) -> dict[int, np.ndarray]:
 
 
 def inside_box(points: np.ndarray, world_from_box: np.ndarray, half: np.ndarray) -> np.ndarray:
-    """[M] bool: world points [M, 3] inside the box ``world_from_box`` [4, 4] of half extents [3]."""
-    local = (points - world_from_box[:3, 3]) @ world_from_box[:3, :3]  # R^T (p - c)
+    """[M] bool: world points [M, 3] inside the box ``world_from_box`` [4, 4] (or one pose per point, [M, 4, 4]) of
+    half extents [3]."""
+    local = np.einsum("...ji,...j->...i", world_from_box[..., :3, :3], points - world_from_box[..., :3, 3])  # R^T(p-c)
     return np.all(np.abs(local) <= half, axis=1)
 
 
