@@ -93,6 +93,16 @@ def test_a_missed_moving_car_is_spawned_on_its_trajectory(missed):
     node, k = boxed_graph.rigid, boxed_graph.rigid.num_instances - 1
     assert np.allclose(node.half_extents[k].numpy(), boxed.box_half[in_box["spawned"][0]] * 1.25, rtol=1e-5)
     assert (node.gaussians.means[node.instance == k].abs() <= node.half_extents[k] + 1e-5).all()
+    # spawn_box_rows="all": it takes every planned row and pulls the ones outside the box onto it
+    pulled = copy.deepcopy(topo)
+    pulled.config = replace(topo.config, spawn_box_slack=0.25, spawn_box_rows="all")
+    pulled_graph = copy.deepcopy(graph)
+    all_rows = pulled.evolve(pulled_graph, None, iteration=80)
+    assert len(all_rows["spawned"]) == 1 and all_rows["boxed"] == in_box["boxed"]
+    node_all, k_all = pulled_graph.rigid, pulled_graph.rigid.num_instances - 1
+    assert (node_all.gaussians.means[node_all.instance == k_all].abs() <= node_all.half_extents[k_all] + 1e-5).all()
+    with pytest.raises(ValueError, match="spawn_box_rows"):
+        replace(topo.config, spawn_box_rows="outside")
     report = topo.evolve(graph, opt, iteration=80)
     assert len(report["spawned"]) == 1 and report["structure_changed"] and report["candidates"] > 100
     # it moves in the video: more of its box's pixels than of the frame (topology_motion; measured 0.18 here)
@@ -124,6 +134,7 @@ def test_a_missed_moving_car_is_spawned_on_its_trajectory(missed):
     print(f"spawned rows: {inside} inside the box of {moved} planned ({in_box['boxed']})")
     assert in_box["boxed"] == [round(inside / moved, 3)] and inside < moved
     assert len(boxed_graph.background) == n_bg - inside
+    assert int((node_all.instance == k_all).sum()) == moved and len(pulled_graph.background) == n_bg - moved
     assert opt.state[graph.background.means]["exp_avg"].shape[0] == len(graph.background)
     assert topo.sum is None  # statistics reset after an evolution
     # the new agent renders where the car is: its Gaussians cover the missed car's pixels in a middle frame

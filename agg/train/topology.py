@@ -108,8 +108,10 @@ class TopologyConfig:
     rigid_size_m: tuple[float, float, float] = (4.5, 1.8, 1.6)  # (l, w, h) of a spawned agent when the graph
     nonrigid_size_m: tuple[float, float, float] = (0.7, 0.7, 1.75)  # has no instance of its class to copy
     spawn_box_slack: float | None = None  # a spawned agent's box is that size grown by this fraction (where it is
-    # placed is an estimate); it takes only the planned rows inside the box and is confined to it like a prior
-    # agent. None (default): it takes every planned row and is left free (docs/TRAINING.md, "The spawn box")
+    # placed is an estimate); it takes the planned rows ``spawn_box_rows`` names and is confined to the box like a
+    # prior agent. None (default): it takes every planned row and is left free (docs/TRAINING.md, "The spawn box")
+    spawn_box_rows: str = "inside"  # with a spawn box: "inside" takes only the planned rows inside it (the others
+    # stay in the background); "all" takes every planned row and pulls the outside ones onto the box
     reset_after_evolve: bool = True  # start the gradient statistics afresh after each evolution
     silhouette: bool = True  # a spawn's per-frame centroid from its semantic silhouette, not from its gradient
     # clusters, which crowd a moving car's leading edge (topology_silhouette)
@@ -121,6 +123,10 @@ class TopologyConfig:
     # pitch: 1.7 cm/m), in the median over its valid frames; None in either: no road check (topology_spawn)
     demote: DemoteConfig = DemoteConfig()  # static, not agent-like instances become background (topology_demote)
     motion: MotionConfig = MotionConfig()  # a spawn's box must move in the video (topology_motion)
+
+    def __post_init__(self) -> None:
+        if self.spawn_box_rows not in ("inside", "all"):
+            raise ValueError(f"spawn_box_rows must be 'inside' or 'all', not {self.spawn_box_rows!r}")
 
     def scaled(self, factor: float) -> "TopologyConfig":
         """The same settings with the iteration milestones scaled (a preset with fewer iterations)."""
@@ -462,7 +468,12 @@ class TopologyEvolution:
         spawned = []
         for plan in spawn:
             poses = plan["poses"][plan["frame_of"]]
-            spawned.append(_to_canonical(_rows(bg, plan["rows"]), poses))
+            params = _to_canonical(_rows(bg, plan["rows"]), poses)
+            if plan.get("box") is not None:  # into its box (spawn_box_rows="all" leaves rows outside it)
+                lim = torch.as_tensor(plan["box"], dtype=params.means.dtype, device=params.means.device)  # [3]
+                with torch.no_grad():
+                    params.means.clamp_(min=-lim, max=lim)
+            spawned.append(params)
             moved[plan["rows"]] = True
         keep = torch.as_tensor(~moved, device=bg.means.device)
         if moved.any():

@@ -10,7 +10,7 @@ whose longest run over those frames reaches ``tau_life`` is planned, after its o
 the video (``topology_motion``). Its member rows are its clusters' Gaussians; with ``spawn_box_slack`` set (off by
 default) only those inside its box (the guessed size grown by that slack) at the frame each is canonicalised at
 (``topology_track.inside_box``), the others staying in the background, and a plan left with fewer than
-``min_agent_gaussians`` rows is dropped.
+``min_agent_gaussians`` rows is dropped (``spawn_box_rows="all"``: every row, those outside pulled onto the box).
 """
 
 from __future__ import annotations
@@ -120,9 +120,10 @@ def plan_spawns(evo, graph, unmatched: list[list[dict]], means: np.ndarray, take
             box = half * (1.0 + cfg.spawn_box_slack)
             inside = tt.inside_box(means[rows], poses[frame_of], box)
             report["boxed"].append(round(float(inside.mean()), 3))
-            rows, frame_of = rows[inside], frame_of[inside]
-            if len(rows) < max(cfg.min_agent_gaussians, 1):
-                continue
+            if cfg.spawn_box_rows == "inside":  # the others stay in the background
+                rows, frame_of = rows[inside], frame_of[inside]
+                if len(rows) < max(cfg.min_agent_gaussians, 1):
+                    continue
         claimed[rows] = True
         plans.append({"rows": rows, "frame_of": frame_of, "poses": poses, "valid": valid, "class": cls,
                       "half": half, "box": box})
