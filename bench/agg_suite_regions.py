@@ -14,7 +14,8 @@ the training frames) and its squared error is pooled over four sets of pixels, f
 - *rest*: every other pixel.
 
 Prints, per scene, the pooled PSNR of each set, its share of the pixels and its share of the squared error;
-``--per-agent`` adds each ground-truth agent's pixels ("agent ID", a subset of the two agent sets).
+``--per-agent`` adds each ground-truth agent's pixels ("agent ID", a subset of the two agent sets), and
+``--per-frame`` each held-out frame's missed-car PSNR with the mean alpha the spawned agents render over its pixels.
 """
 
 from __future__ import annotations
@@ -48,9 +49,10 @@ def path_mask(world_from_agent: np.ndarray, camera_from_world: np.ndarray, K: np
     return out > 0
 
 
-def region_errors(scene_dir: Path, bundle_path: Path, per_agent: bool = False) -> dict:
+def region_errors(scene_dir: Path, bundle_path: Path, per_agent: bool = False, frames: list | None = None) -> dict:
     """{set: (pooled MSE, pixels)} over the held-out frames of one scene (sets as in the module doc); with
-    ``per_agent`` also one set per ground-truth agent id ("agent ID"), which the two agent sets already hold."""
+    ``per_agent`` also one set per ground-truth agent id ("agent ID"), which the two agent sets already hold.
+    ``frames``: a list that gets (frame, missed-car MSE, spawned agents' mean alpha on the car) per held-out frame."""
     from agg.eval.nvs import agent_pose_tables, fit_image, held_out_overrides
     from agg.io.bundle import SceneBundle
     from agg.synth.suite import load_gt_extras
@@ -64,6 +66,12 @@ def region_errors(scene_dir: Path, bundle_path: Path, per_agent: bool = False) -
     graph = load_graph(scene_dir)
     graph.eval()
     tables = agent_pose_tables(graph)
+    spawned = torch.zeros(0)  # [N] 1 on the rows of the agents topology evolution spawned
+    if frames is not None and graph.rigid is not None:
+        sl, node = graph.node_slices()["rigid"], graph.rigid
+        rows = torch.isin(node.track_ids[node.instance], torch.as_tensor(meta["summary"]["agents_spawned"]))
+        spawned = torch.zeros(graph.compose(test[0])["means"].shape[0])
+        spawned[sl.start:sl.stop] = rows.float()
     acc = {k: [0.0, 0] for k in ("missed car", "other agents", "path", "rest")}
     extra: dict[str, list] = {}  # per-agent sets (overlap the agent sets above)
     for f in test:
@@ -82,6 +90,13 @@ def region_errors(scene_dir: Path, bundle_path: Path, per_agent: bool = False) -
                         ("rest", ~(on_car | on_agents | on_path))):
             acc[name][0] += float(err[m].sum())
             acc[name][1] += int(m.sum())
+        if frames is not None:
+            alpha = 0.0
+            if spawned.numel():
+                with torch.no_grad():
+                    alpha = float(graph.render(f, world_from_camera=cam, agent_poses=poses, agent_valid=valid,
+                                               colors=spawned[:, None]).color[..., 0].numpy()[on_car].mean())
+            frames.append((f, float(err[on_car].mean()), alpha))
         for a in np.unique(inst[inst > 0]) if per_agent else ():
             cell = extra.setdefault(f"agent {a}", [0.0, 0])
             cell[0] += float(err[inst == a].sum())
@@ -97,15 +112,21 @@ def main(argv=None) -> int:
     p.add_argument("--work", default=str(ROOT / "bench" / "out" / "agg_suite"))
     p.add_argument("--noise", type=float, default=1.0)
     p.add_argument("--per-agent", action="store_true", help="also each ground-truth agent's pixels (by id)")
+    p.add_argument("--per-frame", action="store_true",
+                   help="also each held-out frame's missed-car PSNR and the spawned agents' alpha on it")
     args = p.parse_args(argv)
     work = Path(args.work)
     for name in args.scenes:
-        sets = region_errors(work / "scenes" / name, bundle_dir(work, args.seed, args.noise), args.per_agent)
+        frames = [] if args.per_frame else None
+        sets = region_errors(work / "scenes" / name, bundle_dir(work, args.seed, args.noise), args.per_agent, frames)
         disjoint = {k: v for k, v in sets.items() if not k.startswith("agent ")}
         sse, n = sum(m * c for m, c in disjoint.values()), sum(c for _, c in disjoint.values())
         print(f"{name}: pooled {-10 * np.log10(sse / n):.2f} dB;", "; ".join(
             f"{k} {-10 * np.log10(max(m, 1e-12)):.2f} dB ({100 * c / n:.1f} % px, {100 * m * c / sse:.1f} % err)"
             for k, (m, c) in sets.items()), flush=True)
+        for f, mse, alpha in frames or ():
+            print(f"  frame {f}: missed car {-10 * np.log10(max(mse, 1e-12)):.2f} dB, spawned agents' alpha on it "
+                  f"{alpha:.2f}", flush=True)
     return 0
 
 
