@@ -116,7 +116,7 @@ def plan_spawns(evo, graph, unmatched: list[list[dict]], means: np.ndarray, take
                 continue
         frame_of = tt.nearest_frame(means[rows], rows, [(t, c["members"]) for t, c in clusters], poses)
         box = None
-        if cfg.spawn_box_slack is not None:  # only the rows inside its box: the agent models its object
+        if cfg.spawn_box_slack is not None:  # a box for the agent's object; which rows it takes: spawn_box_rows
             box = half * (1.0 + cfg.spawn_box_slack)
             inside = tt.inside_box(means[rows], poses[frame_of], box)
             report["boxed"].append(round(float(inside.mean()), 3))
