@@ -25,7 +25,9 @@ tracklet box centres too (the suite's priors keep them exact; only the cameras a
 test), so a probe can ask what the agent rates are worth when the agent priors are wrong; with ``--agent-noise``
 no ``--set`` is needed (the preset as it is, on noisy boxes). ``--oracle-agents`` hands the run priors with every
 agent and no false one (the cameras as noisy as the suite's): what a scene graph gets when nothing is left for
-topology evolution to correct: a measure of what correcting the agents can add.
+topology evolution to correct: a measure of what correcting the agents can add. ``--boxes-follow-cameras``
+lifts the tracklet boxes into the world through the noisy cameras, as the priors of a video are lifted
+(``NoiseConfig.boxes_follow_cameras``: each box carries its frame's camera error; the suite keeps them exact).
 """
 
 from __future__ import annotations
@@ -52,26 +54,27 @@ VARIANTS = {"agg": "", "baseline": "all", "no-tick-tock": "tick-tock", "no-seman
             "topology-only": "tick-tock,semantic"}
 
 
-def bundle_dir(work: Path, seed: int, noise: float, agent_noise: float = 0.0, oracle: bool = False) -> Path:
+def bundle_dir(work: Path, seed: int, noise: float, agent_noise: float = 0.0, oracle: bool = False,
+               follow: bool = False) -> Path:
     """Where ``synth_bundle`` keeps the bundle of these settings (the scripts that rescore scenes read it there)."""
     return work / "bundles" / (f"s{seed}_n{noise:g}" + (f"_a{agent_noise:g}" if agent_noise else "")
-                               + ("_oracle" if oracle else ""))
+                               + ("_oracle" if oracle else "") + ("_fc" if follow else ""))
 
 
 def synth_bundle(work: Path, seed: int, noise: float, frames: int, width: int, height: int,
-                 agent_noise: float = 0.0, oracle: bool = False) -> Path:
+                 agent_noise: float = 0.0, oracle: bool = False, follow: bool = False) -> Path:
     """The suite's bundle of ``seed`` with camera-centre noise ``noise`` (m); ``agent_noise`` (m, probes only) also
     moves every tracklet box centre by up to that much per frame (the suite itself keeps the boxes exact);
     ``oracle`` (probes only) keeps every agent in the priors and plants no false one (the same camera noise, whose
-    draws are their own stream)."""
+    draws are their own stream); ``follow`` (probes only) lifts the boxes through the noisy cameras."""
     from agg.synth.corrupt import NoiseConfig
     from agg.synth.scene import SceneConfig
     from agg.synth.suite import generate, write_bundle
 
-    path = bundle_dir(work, seed, noise, agent_noise, oracle)
+    path = bundle_dir(work, seed, noise, agent_noise, oracle, follow)
     if not (path / "manifest.json").is_file():
         cfg = NoiseConfig(seed=seed, camera_translation_max=noise, agent_translation_max=agent_noise,
-                          missed=0 if oracle else 1, false=0 if oracle else 1)
+                          missed=0 if oracle else 1, false=0 if oracle else 1, boxes_follow_cameras=follow)
         gt, priors = generate(SceneConfig(seed=seed, frames=frames, width=width, height=height), cfg)
         tmp = path.with_name(f"{path.name}.tmp{os.getpid()}")  # runs started together race for one bundle:
         write_bundle(tmp, gt, priors, cfg, overwrite=True)  # each writes its own, the first rename wins
@@ -337,13 +340,13 @@ def _run(args, name: str, input_path, preset, row: dict, **kwargs) -> dict | Non
     return row
 
 
-def _synthetic_cases(args, agent_noise: float = 0.0, oracle: bool = False):
+def _synthetic_cases(args, agent_noise: float = 0.0, oracle: bool = False, follow: bool = False):
     """(seed, noise, variant, bundle path) for every case of ``--seeds`` x ``--noise`` x ``--variants``."""
     for seed in [int(s) for s in args.seeds.split(",")]:
         for noise in [float(n) for n in args.noise.split(",")]:
             for variant in args.variants.split(","):
                 yield seed, noise, variant, synth_bundle(Path(args.work), seed, noise, args.frames, args.width,
-                                                         args.height, agent_noise, oracle)
+                                                         args.height, agent_noise, oracle, follow)
 
 
 def run_synth(args) -> None:
@@ -403,15 +406,17 @@ def probe_config(preset: str, sets: list[str]):
 
 
 def run_probe(args) -> None:
-    a, oracle = args.agent_noise, args.oracle_agents
-    if not args.set and not a and not oracle:
-        raise SystemExit("probe needs at least one --set NAME=VALUE, --agent-noise or --oracle-agents")
+    a, oracle, follow = args.agent_noise, args.oracle_agents, args.boxes_follow_cameras
+    if not args.set and not a and not oracle and not follow:
+        raise SystemExit("probe needs at least one --set NAME=VALUE, --agent-noise, --oracle-agents or "
+                         "--boxes-follow-cameras")
     cfg, tag = probe_config(args.preset, args.set)
-    for seed, noise, variant, bundle in _synthetic_cases(args, a, oracle):
+    for seed, noise, variant, bundle in _synthetic_cases(args, a, oracle, follow):
         _run(args, f"probe_s{seed}_n{noise:g}" + (f"_a{a:g}" if a else "") + ("_oracle" if oracle else "")
-             + f"_{variant}_{args.preset}" + (f"_{tag}" if tag else ""),
+             + ("_fc" if follow else "") + f"_{variant}_{args.preset}" + (f"_{tag}" if tag else ""),
              bundle, cfg, {"kind": "probe", "seed": seed, "noise": noise, "variant": variant, "set": args.set,
-                           "agent_noise": a, "oracle_agents": oracle}, ablate=VARIANTS[variant])
+                           "agent_noise": a, "oracle_agents": oracle, "boxes_follow_cameras": follow},
+             ablate=VARIANTS[variant])
 
 
 def run_rescore(args) -> None:
@@ -431,7 +436,8 @@ def run_rescore(args) -> None:
                 continue
             row["regions"] = region_scores(scene)
             bundle = synth_bundle(work, row["seed"], row["noise"], args.frames, args.width, args.height,
-                                  row.get("agent_noise", 0.0), row.get("oracle_agents", False))
+                                  row.get("agent_noise", 0.0), row.get("oracle_agents", False),
+                                  row.get("boxes_follow_cameras", False))
             graph = load_graph(scene)
             row["agent_poses"] = agent_pose_scores(graph, bundle)
             if row.get("topology") is not None:
@@ -485,12 +491,15 @@ def main(argv=None) -> int:
                    help="probe: also move each tracklet box centre by up to this many metres per frame")
     p.add_argument("--oracle-agents", action="store_true",
                    help="probe: priors with every agent and no false one (the same camera noise)")
+    p.add_argument("--boxes-follow-cameras", action="store_true",
+                   help="probe: tracklet boxes lifted through the noisy cameras (each carries its frame's error)")
     p.add_argument("--tag", default=None, help="real: the name its records carry (default: the folder's)")
     p.add_argument("--force", action="store_true")
     p.add_argument("--device", default="cpu", help="torch device training runs on (cpu, cuda, ...)")
     args = p.parse_args(argv)
-    if args.agent_noise and args.what != "probe":
-        p.error("--agent-noise is for probe only (the suite's records keep the tracklet boxes exact)")
+    if (args.agent_noise or args.boxes_follow_cameras) and args.what != "probe":
+        p.error("--agent-noise and --boxes-follow-cameras are for probe only (the suite's records keep the tracklet "
+                "boxes exact)")
     if args.what == "report":
         from bench.agg_suite_report import write_report
 

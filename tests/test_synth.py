@@ -8,8 +8,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from agg.synth.corrupt import (NoiseConfig, NoiseConfigError, box_world_pose, corrupt, missed_order, noisy_boxes,
-                               noisy_camera_poses, rotation_angle)
+from agg.synth.corrupt import (NoiseConfig, NoiseConfigError, box_world_pose, boxes_through_cameras, corrupt,
+                               missed_order, noisy_boxes, noisy_camera_poses, rotation_angle)
 from agg.synth.features import FeatureConfig, FeatureConfigError, attention_maps, class_embeddings, classify
 from agg.synth.raycast import (ValueNoise, intersect_boxes, intersect_boxes_dense, pixel_rays, render,
                                render_scene_frame, screen_rects)
@@ -285,6 +285,34 @@ def test_agent_pose_noise_bounds():
     np.testing.assert_array_equal(noisy[..., 3:6], boxes[..., 3:6])
 
 
+def test_boxes_follow_cameras_keep_their_place_in_each_view(gt):
+    """A box lifted through a noisy camera is seen from that camera where the true camera sees the true box."""
+    cfg = NoiseConfig(seed=6, camera_translation_max=1.0, missed=1, false=1, boxes_follow_cameras=True)
+    p, exact = corrupt(gt, cfg), corrupt(gt, replace(cfg, boxes_follow_cameras=False))
+    np.testing.assert_array_equal(p.world_from_camera, exact.world_from_camera)
+    np.testing.assert_array_equal(p.valid, exact.valid)
+    moved = np.linalg.norm(p.boxes[..., :3] - exact.boxes[..., :3], axis=-1)  # [K, T]
+    error = np.linalg.norm(p.world_from_camera[:, :3, 3] - gt.world_from_camera[:, :3, 3], axis=1)  # [T]
+    np.testing.assert_allclose(moved[p.valid], np.broadcast_to(error, moved.shape)[p.valid], atol=1e-9)
+    assert np.all(moved[~p.valid] == 0) and error[1:].min() > 0
+    np.testing.assert_allclose(p.boxes[..., 6], exact.boxes[..., 6], atol=1e-12)  # translation noise: same yaw
+    # with rotation noise too: the camera-frame pose of every valid entry is the true one (false agents included)
+    cams = noisy_camera_poses(gt.world_from_camera, NoiseConfig(seed=6, camera_translation_max=0.5,
+                                                                camera_rotation_max_deg=3.0))
+    rng = np.random.default_rng(1)
+    t = len(cams)
+    boxes = np.concatenate([rng.normal(0, 10, (4, t, 3)), np.full((4, t, 3), 2.0), rng.uniform(-3, 3, (4, t, 1))], -1)
+    valid = rng.random((4, t)) < 0.8
+    lifted = boxes_through_cameras(boxes, valid, gt.world_from_camera, cams)
+    for k, i in zip(*np.nonzero(valid)):
+        seen = np.linalg.inv(cams[i]) @ box_world_pose(lifted[k, i])
+        truth = np.linalg.inv(gt.world_from_camera[i]) @ box_world_pose(boxes[k, i])
+        np.testing.assert_allclose(seen[:3, 3], truth[:3, 3], atol=1e-9)  # the centre exactly
+        heading = np.rad2deg(rotation_angle(seen[:3, :3].T @ truth[:3, :3]))
+        assert heading <= 3.0 + 1e-6  # yaw-only boxes keep the rotation about y; the tilt (<= 3 deg) is lost
+    np.testing.assert_array_equal(lifted[~valid], boxes[~valid])
+
+
 def test_missed_agents_are_the_documented_ones(gt):
     order = missed_order(gt)
     assert gt.agent_names[order[0]] == "moving_car"
@@ -424,3 +452,10 @@ def test_command_writes_bundle_and_gt_that_load_back(tmp_path):
     assert main(argv) == 2
     assert main(argv + ["--overwrite", "--depth-format", "sparse"]) == 0
     assert SceneBundle.load(out).has("depth_sparse")
+    # --boxes-follow-cameras: the same priors with each box lifted through its frame's noisy camera
+    assert main(argv + ["--overwrite", "--boxes-follow-cameras"]) == 0
+    lifted = SceneBundle.load(out)
+    assert lifted.meta["synth"]["noise"]["boxes_follow_cameras"] is True
+    np.testing.assert_array_equal(lifted.world_from_camera, prior_poses)
+    np.testing.assert_allclose(lifted.tracklets.boxes, boxes_through_cameras(prt.boxes, prt.valid, gt_poses,
+                                                                             prior_poses), equal_nan=True)

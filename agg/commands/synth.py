@@ -38,6 +38,8 @@ def add_parser(subparsers) -> None:
                    help="max agent box-centre noise in metres per valid tracklet entry")
     g.add_argument("--noise-agent-yaw-deg", type=float, default=0.0, metavar="Y",
                    help="agent yaw noise ~ U[-Y, Y] degrees")
+    g.add_argument("--boxes-follow-cameras", action="store_true",
+                   help="lift the tracklet boxes through the noisy cameras (each carries its frame's camera error)")
     g.add_argument("--missed", type=int, default=0, metavar="K",
                    help="drop K agents from the priors (moving cars first, most visible first)")
     g.add_argument("--false", type=int, default=0, metavar="K", help="add K false agents to the priors")
@@ -67,7 +69,7 @@ def run(args: argparse.Namespace) -> int:
                             camera_rotation_max_deg=args.noise_rotation_deg, agent_translation_max=args.noise_agent,
                             agent_yaw_max_deg=args.noise_agent_yaw_deg, missed=args.missed, false=args.false,
                             depth_rel_sigma=args.depth_noise, depth_keep_fraction=args.depth_keep,
-                            feature_sigma=args.feature_noise)
+                            feature_sigma=args.feature_noise, boxes_follow_cameras=args.boxes_follow_cameras)
         gt, priors = generate(cfg, noise)
         write_bundle(args.output, gt, priors, noise, depth_format=args.depth_format, overwrite=args.overwrite)
     except ValueError as exc:  # bad settings, or an existing bundle without --overwrite

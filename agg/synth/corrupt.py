@@ -13,6 +13,12 @@ Distributions (all i.i.d. over the entries they name):
 - Agent pose (``agent_translation_max`` = M_a, ``agent_yaw_max_deg`` = Y): every valid tracklet entry (agent, frame)
   gets its box centre moved by ``m * u`` as for cameras (``m ~ U[0, M_a]``) and its yaw changed by ``U[-Y, Y]``.
   Box sizes stay exact.
+- Boxes through the cameras (``boxes_follow_cameras``): a tracklet estimated from a video is lifted into the world
+  through that video's estimated cameras (``agg.priors.tracklet_detections``), so it carries each frame's camera
+  error. With the flag on, every tracklet entry at frame t (the false agents' too) is moved by the noisy camera's
+  error, ``world_from_camera'[t] @ inv(world_from_camera[t])``: the box keeps its true place in the frame's view and
+  the noisy camera puts it in the world. The yaw takes the error's rotation about y. Off (the default), the boxes
+  keep their world poses whatever the cameras' noise, and the camera error is a pure camera error.
 - Missed agents (``missed`` = k): k real agents are removed from the prior tracklets, the dynamic masks and the
   prior instance map. They are chosen without randomness, by ``missed_order``: moving cars first, then
   pedestrians, then parked cars; within each group the most visible (total pixels over the clip) first; agents
@@ -61,6 +67,7 @@ class NoiseConfig:
     depth_rel_sigma: float = 0.0  # relative (multiplicative) depth noise std
     depth_keep_fraction: float = 1.0  # fraction of valid depth pixels kept
     feature_sigma: float = 0.0  # std of the Gaussian noise added to each feature element
+    boxes_follow_cameras: bool = False  # tracklet boxes carry each frame's camera error (lifted through it)
 
     def validate(self) -> None:
         for name in ("camera_translation_max", "camera_rotation_max_deg", "agent_translation_max",
@@ -176,6 +183,20 @@ def noisy_boxes(boxes: np.ndarray, valid: np.ndarray, cfg: NoiseConfig) -> np.nd
     return out
 
 
+def boxes_through_cameras(boxes: np.ndarray, valid: np.ndarray, true_world_from_camera: np.ndarray,
+                          world_from_camera: np.ndarray) -> np.ndarray:
+    """[K, T, 7] boxes seen from the true cameras [T, 4, 4] and placed in the world by ``world_from_camera``
+    [T, 4, 4]: each valid entry moved by ``world_from_camera[t] @ inv(true_world_from_camera[t])``."""
+    error = world_from_camera @ np.linalg.inv(true_world_from_camera)  # [T, 4, 4]
+    centre = np.einsum("tij,ktj->kti", error[:, :3, :3], boxes[..., :3]) + error[None, :, :3, 3]  # [K, T, 3]
+    heading = np.einsum("tij,ktj->kti", error[:, :3, :3], np.stack(  # the box's +z axis under rot_y(yaw)
+        [np.sin(boxes[..., 6]), np.zeros(boxes.shape[:2]), np.cos(boxes[..., 6])], -1))  # [K, T, 3]
+    out = boxes.copy()
+    out[..., :3] = np.where(valid[..., None], centre, boxes[..., :3])
+    out[..., 6] = np.where(valid, np.arctan2(heading[..., 0], heading[..., 2]), boxes[..., 6])
+    return out
+
+
 def box_world_pose(box: np.ndarray) -> np.ndarray:
     """world_from_box [4, 4] of a (cx, cy, cz, l, w, h, yaw) box."""
     return pose(rot_y(box[6]), box[:3])
@@ -276,6 +297,9 @@ def corrupt(gt, cfg: NoiseConfig) -> Priors:
         instance = np.where(fsil[j], false_ids[j], instance)
     fvalid = fsil.any((2, 3))  # [k, T]
     all_boxes = np.concatenate([boxes, np.repeat(fboxes[:, None], len(gt.depth), 1)]) if len(fboxes) else boxes
+    all_valid = np.concatenate([valid, fvalid]).astype(bool)
+    if cfg.boxes_follow_cameras:
+        all_boxes = boxes_through_cameras(all_boxes, all_valid, gt.world_from_camera, poses)
     # features
     features = gt.features.copy()
     if cfg.feature_sigma > 0:
@@ -285,6 +309,6 @@ def corrupt(gt, cfg: NoiseConfig) -> Priors:
         world_from_camera=poses, depth=depth,
         track_ids=np.array(ids + false_ids, np.int64), track_classes=classes + fclasses,
         track_labels=labels + ["false-car" if c == "rigid" else "false-pedestrian" for c in fclasses],
-        boxes=all_boxes.reshape(-1, len(gt.depth), 7), valid=np.concatenate([valid, fvalid]).astype(bool),
+        boxes=all_boxes.reshape(-1, len(gt.depth), 7), valid=all_valid,
         gt_index=np.array(kept + [-1] * len(fboxes), np.int64), instance=instance, features=features,
         missed_ids=[int(gt.agent_ids[k]) for k in dropped], false_ids=false_ids)
