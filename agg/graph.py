@@ -58,6 +58,21 @@ class SceneGraph(nn.Module):
         self.register_buffer("K", torch.as_tensor(K, dtype=torch.float32).reshape(-1, 3, 3))  # [T or 1, 3, 3]
         self.width, self.height = int(width), int(height)
 
+    def __setattr__(self, name: str, value) -> None:
+        super().__setattr__(name, value)
+        if name in ("rigid", "nonrigid") and value is not None:
+            value.camera_delta = self.camera_delta  # anchored agents follow the camera node (nodes/rigid.py)
+
+    def camera_delta(self, frame: int) -> Tensor:
+        """[4, 4] the camera node's correction at ``frame`` in world coordinates: ``world_from_camera @
+        inv(prior)``, so ``delta @ prior = world_from_camera`` (identity where the correction is zero)."""
+        cam = self.camera
+        prior = cam.prior[frame]  # [4, 4]
+        inv = torch.eye(4, dtype=prior.dtype, device=prior.device)
+        inv[:3, :3] = prior[:3, :3].T
+        inv[:3, 3] = -prior[:3, :3].T @ prior[:3, 3]
+        return cam.world_from_camera(torch.tensor([frame], device=prior.device))[0] @ inv
+
     @property
     def num_frames(self) -> int:
         return len(self.camera)

@@ -8,6 +8,7 @@ import torch
 
 from agg.graph import SceneGraph
 from agg.io.bundle import SceneBundle
+from agg.nodes.gaussians import GaussianParams
 from agg.nodes.init import InitConfig
 from agg.synth.corrupt import NoiseConfig
 from agg.synth.scene import SceneConfig
@@ -104,3 +105,52 @@ def test_agent_overrides_move_and_hide_agents_and_state_round_trips(synth):
     again = SceneGraph.from_state(graph.state())
     with torch.no_grad():
         torch.testing.assert_close(again.render(3).color, graph.render(3).color)
+
+
+def test_anchored_agents_keep_their_view_when_the_camera_moves(synth):
+    """An anchored instance moves with the camera node's correction, so its pixels neither move nor pull the
+    camera; unanchored instances and the background stay in the world. Surgery and the state keep the flags."""
+    bundle, _ = synth
+    graph = SceneGraph.from_bundle(bundle, InitConfig(opacity=0.9))
+    node, frame = graph.rigid, 5
+    node.anchored[0] = True
+    before = node.world_from_box(frame).detach().clone()  # [K, 4, 4] zero camera correction: the priors
+    torch.testing.assert_close(before, node.prior[frame] @ torch.eye(4), atol=1e-5, rtol=0)
+    with torch.no_grad():
+        graph.camera.tau[frame] = torch.tensor([0.3, -0.1, 0.5])
+        graph.camera.omega[frame] = torch.tensor([0.01, 0.02, -0.01])
+    cfw = graph.camera.camera_from_world(torch.tensor([frame]))[0].detach()
+    prior_cfw = torch.linalg.inv(graph.camera.prior[frame])
+    after = node.world_from_box(frame).detach()
+    torch.testing.assert_close(cfw @ after[0], prior_cfw @ before[0], atol=1e-5, rtol=0)  # same view of the box
+    torch.testing.assert_close(after[1:], before[1:])  # the others keep their world poses
+    assert (after[0, :3, 3] - before[0, :3, 3]).norm() > 0.2
+
+    # the anchored agent's pixels give the camera (almost) no gradient: its render does not depend on the camera
+    from agg.render import rasterize
+
+    def camera_grad(anchored: bool) -> float:
+        node.anchored[0] = anchored
+        graph.camera.zero_grad()
+        g = graph.compose(frame)
+        sel = g["node"] == 1  # the instance's Gaussians alone (the background would occlude them)
+        out = rasterize(g["means"][sel], g["quats"][sel], g["scales"][sel], g["opacities"][sel],
+                        colors=torch.ones(int(sel.sum()), 1), K=graph.K[0], width=graph.width, height=graph.height,
+                        viewmat=graph.camera.camera_from_world(torch.tensor([frame]))[0])
+        (out.color[..., 0] ** 2).sum().backward()
+        return float(torch.cat([graph.camera.tau.grad[frame], graph.camera.omega.grad[frame]]).norm())
+
+    free, held = camera_grad(False), camera_grad(True)
+    assert free > 0 and held < 1e-3 * free, (free, held)
+
+    # surgery: spawned instances are not anchored, removal keeps the flags aligned, the state round-trips
+    sel = node.instance == 1
+    copy = GaussianParams.from_state({k: v[sel] for k, v in node.gaussians.state().items()})
+    node.add_instances(copy, torch.zeros(int(sel.sum()), dtype=torch.long), node.prior[:, 1:2], node.valid[:, 1:2],
+                       torch.tensor([99]))
+    assert node.anchored.tolist()[-1] is False and bool(node.anchored[0])
+    node.remove_instances(torch.arange(node.num_instances) != 1)
+    assert bool(node.anchored[0]) and not bool(node.anchored[1:].any())
+    again = SceneGraph.from_state(graph.state())
+    assert again.rigid.anchored.tolist() == node.anchored.tolist()
+    torch.testing.assert_close(again.rigid.world_from_box(frame), node.world_from_box(frame).detach())

@@ -71,6 +71,32 @@ def test_the_semantic_gate_is_a_reconstruct_option(scene, tmp_path, capsys):
     assert exc.value.code == 2 and "must be > 0" in capsys.readouterr().err
 
 
+def test_camera_anchored_agents_train_and_keep_their_flag(scene, tmp_path):
+    """``agent_anchor="camera"``: the priors' agents follow the camera node (nodes/rigid.py) and the finished scene
+    keeps that; an unknown anchor is an error before anything trains."""
+    from agg.scene import Scene
+
+    out = tmp_path / "anchored"
+    reconstruct(scene.parent / "bundle", out, "tiny", overrides={"iterations": 20, "agent_anchor": "camera"},
+                evaluate=False)
+    graph = Scene.load(out).graph
+    anchored = torch.cat([n.anchored for n in graph.agent_nodes()])
+    spawned = set(json.loads((out / "scene.json").read_text())["summary"]["agents_spawned"])
+    ids = torch.cat([n.track_ids for n in graph.agent_nodes()]).tolist()
+    assert anchored.tolist() == [i not in spawned for i in ids] and anchored.any()
+    frame = int(torch.nonzero(graph.camera.tau.detach().norm(dim=-1))[0, 0])  # a frame whose camera moved
+    node = graph.rigid
+    k = int(torch.nonzero(node.valid[frame] & node.anchored)[0, 0])
+    view = graph.camera.camera_from_world(torch.tensor([frame]))[0] @ node.world_from_box(frame)[k]
+    prior_view = torch.linalg.inv(graph.camera.prior[frame]) @ node.world_from_box(frame)[k]
+    assert not torch.allclose(view, prior_view, atol=1e-4)  # the box moved with the camera's correction...
+    node.anchored[k] = False
+    torch.testing.assert_close(torch.linalg.inv(graph.camera.prior[frame]) @ node.world_from_box(frame)[k], view,
+                               atol=1e-4, rtol=0)  # ...by exactly that correction
+    with pytest.raises(ValueError, match="agent_anchor"):
+        reconstruct(scene.parent / "bundle", tmp_path / "bad", "tiny", overrides={"agent_anchor": "box"})
+
+
 def test_eval_prints_the_stable_json_keys(scene, capsys):
     capsys.readouterr()
     assert main(["eval", str(scene), "--json"]) == 0

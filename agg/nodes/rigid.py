@@ -17,6 +17,13 @@ fast, so the box fell 0.4 m to 1.45 m ahead of the car over 23 frames. A per-fra
 frame is drawn (about 26 Tock steps each), which moves it a few centimetres; every frame's step trains ``rate``.
 A constant shift along the track is not learnable this way (it is the gauge between the box origin and the
 canonical Gaussians, ``topology_anchor``), but a wrong speed is: no canonical shift renders it.
+
+An instance can be anchored to the camera (``anchored`` [K]): a tracklet that the priors lifted into the world
+through their estimated cameras carries each frame's camera error, so when the camera node corrects frame t, the
+box moves with it: ``world_from_box = D_t @ prior @ corr``, with ``D_t = world_from_camera_t @ inv(prior_t)`` the
+camera node's correction in world coordinates (``camera_delta``, which the scene graph sets). The box then keeps
+its place in the frame's view whatever the camera does, so its pixels neither pull the camera nor fall off their
+object when the background moves the camera. Unanchored instances (the default) keep their world poses.
 """
 
 from __future__ import annotations
@@ -75,6 +82,8 @@ class RigidAgents(nn.Module):
         self.rate = nn.Parameter(torch.zeros(k))  # [K] track-speed correction (module doc)
         self.register_buffer("speed_free", torch.zeros(k, dtype=torch.bool))  # [K] where ``rate`` applies
         self.register_buffer("rate_ref", _rate_ref(self.prior, valid))  # [K, 3] mean valid prior translation
+        self.register_buffer("anchored", torch.zeros(k, dtype=torch.bool))  # [K] poses follow the camera node
+        self.camera_delta = None  # frame -> [4, 4] the camera node's correction in world coordinates (SceneGraph)
 
     @property
     def num_instances(self) -> int:
@@ -91,11 +100,18 @@ class RigidAgents(nn.Module):
         corr[:, :3, 3] = self.tau[frame]
         out = self.prior[frame] @ corr  # [K, 4, 4]
         if not bool(self.speed_free.any()):
-            return out
+            return self._anchor(frame, out)
         rate = self.rate * (self.speed_free & self.valid[frame]).to(self.rate)  # [K] (invalid: prior is eye)
         shift = rate[:, None] * (self.prior[frame, :, :3, 3] - self.rate_ref)  # [K, 3]
         # [R | t + s] @ [Rc | tc] = prior @ corr + s in the translation column
-        return out + torch.nn.functional.pad(shift[..., None], (3, 0, 0, 1))
+        return self._anchor(frame, out + torch.nn.functional.pad(shift[..., None], (3, 0, 0, 1)))
+
+    def _anchor(self, frame: int, poses: Tensor) -> Tensor:
+        """``poses`` [K, 4, 4] with the anchored instances' moved by the camera node's correction at ``frame``."""
+        if self.camera_delta is None or not bool(self.anchored.any()):
+            return poses
+        delta = self.camera_delta(frame).to(poses)  # [4, 4]
+        return torch.where(self.anchored[:, None, None], delta @ poses, poses)
 
     def canonical(self, frame: int, t: float) -> dict[str, Tensor]:
         """Canonical-frame Gaussians at a frame / continuous time (a non-rigid node adds its deformation)."""
@@ -169,6 +185,7 @@ class RigidAgents(nn.Module):
         new_prior = self.prior[:, k0:]
         self.rate_ref = torch.cat([self.rate_ref, _rate_ref(new_prior, valid).to(self.rate_ref)])
         self.speed_free = torch.cat([self.speed_free, torch.full((k_new,), bool(speed_free)).to(self.speed_free)])
+        self.anchored = torch.cat([self.anchored, self.anchored.new_zeros(k_new)])  # a spawn's track is the map's
         self._resize_instances(optimizer, lambda v: torch.cat([v, v.new_zeros(v.shape[0], k_new, *v.shape[2:])], 1))
 
     def remove_instances(self, keep: Tensor, optimizer: torch.optim.Optimizer | None = None) -> None:
@@ -181,7 +198,7 @@ class RigidAgents(nn.Module):
         self.instance = new_index[self.instance[keep[self.instance]]]
         self.prior, self.valid, self.track_ids = self.prior[:, keep], self.valid[:, keep], self.track_ids[keep]
         self.half_extents = self.half_extents[keep]
-        self.rate_ref, self.speed_free = self.rate_ref[keep], self.speed_free[keep]
+        self.rate_ref, self.speed_free, self.anchored = self.rate_ref[keep], self.speed_free[keep], self.anchored[keep]
         self._resize_instances(optimizer, lambda v: v[:, keep].clone())
 
     def _resize_instances(self, optimizer, fn) -> None:
@@ -206,7 +223,7 @@ class RigidAgents(nn.Module):
                 "half_extents": self.half_extents.clone(),
                 "omega": self.omega.detach().clone(), "tau": self.tau.detach().clone(),
                 "rate": self.rate.detach().clone(), "speed_free": self.speed_free.clone(),
-                "rate_ref": self.rate_ref.clone()}
+                "rate_ref": self.rate_ref.clone(), "anchored": self.anchored.clone()}
 
     def load_pose_state(self, state: dict) -> None:
         """Copy the learnt pose corrections of ``state`` (checkpoints before the track-speed correction: none)."""
@@ -217,6 +234,8 @@ class RigidAgents(nn.Module):
                 self.rate.copy_(state["rate"])
                 self.speed_free.copy_(state["speed_free"])
                 self.rate_ref.copy_(state["rate_ref"])
+            if "anchored" in state:  # checkpoints before camera anchoring: none anchored
+                self.anchored.copy_(state["anchored"])
 
     @classmethod
     def from_state(cls, state: dict) -> "RigidAgents":

@@ -114,8 +114,11 @@ def _graph_for(bundle: SceneBundle, cfg: TrainConfig, metric: MetricScale) -> Sc
     from agg.nodes.nonrigid import DeformConfig
 
     deform = DeformConfig()
-    return SceneGraph.from_bundle(bundle, cfg.init,
-                                  deform=replace(deform, pos_scale=deform.pos_scale * metric.units_per_metre))
+    graph = SceneGraph.from_bundle(bundle, cfg.init,
+                                   deform=replace(deform, pos_scale=deform.pos_scale * metric.units_per_metre))
+    for node in graph.agent_nodes():  # the priors' tracklets; agents spawned later keep their world tracks
+        node.anchored.fill_(cfg.agent_anchor == "camera")
+    return graph
 
 
 def reconstruct(input_path: str | Path, scene_dir: str | Path, preset: str | TrainConfig = "fast", *,
