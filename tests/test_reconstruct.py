@@ -77,8 +77,9 @@ def test_camera_anchored_agents_train_and_keep_their_flag(scene, tmp_path):
     from agg.scene import Scene
 
     out = tmp_path / "anchored"
-    reconstruct(scene.parent / "bundle", out, "tiny", overrides={"iterations": 20, "agent_anchor": "camera"},
-                evaluate=False)
+    assert main(["reconstruct", str(scene.parent / "bundle"), "-o", str(out), "--preset", "tiny", "--iterations", "20",
+                 "--agent-anchor", "camera", "--no-eval"]) == 0
+    assert json.loads((out / "scene.json").read_text())["config"]["agent_anchor"] == "camera"
     graph = Scene.load(out).graph
     anchored = torch.cat([n.anchored for n in graph.agent_nodes()])
     spawned = set(json.loads((out / "scene.json").read_text())["summary"]["agents_spawned"])

@@ -28,6 +28,9 @@ def add_parser(subparsers) -> None:
     p.add_argument("--semantic-min-contrast", type=_contrast, metavar="RATIO|none",
                    help="train without the semantic loss when the attention maps separate the priors' dynamic masks "
                         "by less than RATIO (default 1.5); 'none' keeps it on whatever the maps (the paper's rule)")
+    p.add_argument("--agent-anchor", choices=("world", "camera"),
+                   help="camera: the priors' agents move with the camera's refinement, as tracklets lifted through "
+                        "the estimated cameras do (default world: they keep their world poses; docs/TRAINING.md)")
     p.add_argument("--max-frames", type=int, metavar="N", help="keep at most N frames of a video")
     p.add_argument("--intrinsics", metavar="FILE|fx,fy,cx,cy", help="camera intrinsics (see agg priors)")
     p.add_argument("--no-resume", action="store_true", help="start over even if SCENE has a checkpoint")
@@ -101,6 +104,8 @@ def run(args: argparse.Namespace) -> int:
         given = args.semantic_min_contrast
         if given is not None:
             overrides["semantic_min_contrast"] = None if given == "none" else given
+        if args.agent_anchor:
+            overrides["agent_anchor"] = args.agent_anchor
         summary = reconstruct(args.input, args.output, args.preset, progress=bar, resume=not args.no_resume,
                               overrides=overrides, ablate=args.ablate or None, gt_poses=args.gt_poses,
                               evaluate=not args.no_eval, max_frames=args.max_frames, intrinsics=args.intrinsics,
