@@ -26,6 +26,7 @@ from agg.nodes.gaussians import GaussianParams
 from agg.nodes.init import InitConfig, box_pose, init_from_bundle
 from agg.nodes.rigid import RigidAgents
 from agg.render import rasterize
+from agg.render.projection import invert_rigid
 
 KEYS = ("means", "quats", "scales", "opacities", "sh")
 
@@ -68,10 +69,7 @@ class SceneGraph(nn.Module):
         inv(prior)``, so ``delta @ prior = world_from_camera`` (identity where the correction is zero)."""
         cam = self.camera
         prior = cam.prior[frame]  # [4, 4]
-        inv = torch.eye(4, dtype=prior.dtype, device=prior.device)
-        inv[:3, :3] = prior[:3, :3].T
-        inv[:3, 3] = -prior[:3, :3].T @ prior[:3, 3]
-        return cam.world_from_camera(torch.tensor([frame], device=prior.device))[0] @ inv
+        return cam.world_from_camera(torch.tensor([frame], device=prior.device))[0] @ invert_rigid(prior)
 
     @property
     def num_frames(self) -> int:

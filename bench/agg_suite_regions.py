@@ -70,7 +70,7 @@ def region_errors(scene_dir: Path, bundle_path: Path, per_agent: bool = False, f
     if frames is not None and graph.rigid is not None:
         sl, node = graph.node_slices()["rigid"], graph.rigid
         rows = torch.isin(node.track_ids[node.instance], torch.as_tensor(meta["summary"]["agents_spawned"]))
-        spawned = torch.zeros(graph.compose(test[0])["means"].shape[0])
+        spawned = torch.zeros(graph.num_gaussians())  # compose order: the rigid rows at node_slices()["rigid"]
         spawned[sl.start:sl.stop] = rows.float()
     acc = {k: [0.0, 0] for k in ("missed car", "other agents", "path", "rest")}
     extra: dict[str, list] = {}  # per-agent sets (overlap the agent sets above)
