@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -121,6 +122,9 @@ def test_round_trip_every_optional_part(tmp_path):
     np.testing.assert_array_equal(tr.boxes[tr0.valid], tr0.boxes[tr0.valid])
     assert np.isnan(tr.boxes[~tr0.valid]).all() and np.isnan(tr.boxes[1, 3:, 3:]).all()
     np.testing.assert_array_equal(tr.confidence, tr0.confidence)
+    assert tr.anchor == "world" and "anchor" not in b2.manifest["tracklets"]  # absent means world (older bundles)
+    b2.write_tracklets(replace(tr0, anchor="camera"))  # boxes lifted through the bundle's cameras (agg priors)
+    assert SceneBundle.load(b.path).tracklets.anchor == "camera"
     sem, sem0 = b2.semantics, p["semantics"]
     np.testing.assert_array_equal(sem.features, sem0.features)
     assert sem.features.dtype == np.float16 and sem.C_bg == [0, 1, 2] and sem.C_ag == [5, 7]
@@ -251,6 +255,8 @@ def test_validation_errors_on_write(tmp_path):
     tr = Tracklets(ids=np.array([1]), classes=["truck"], boxes=np.zeros((1, T, 7)), valid=np.ones((1, T), bool))
     with pytest.raises(BundleValidationError, match="classes"):
         b.write_tracklets(tr)
+    with pytest.raises(BundleValidationError, match="anchor"):
+        b.write_tracklets(replace(tr, classes=["rigid"], anchor="box"))
     sem = SemanticFeatures(features=np.zeros((T, 2, 2, 64)), C_bg=[0], C_ag=[64])
     with pytest.raises(BundleValidationError, match="C_ag has channel indices outside"):
         b.write_semantics(sem)

@@ -72,13 +72,21 @@ def test_the_semantic_gate_is_a_reconstruct_option(scene, tmp_path, capsys):
 
 
 def test_camera_anchored_agents_train_and_keep_their_flag(scene, tmp_path):
-    """``agent_anchor="camera"``: the priors' agents follow the camera node (nodes/rigid.py) and the finished scene
-    keeps that; an unknown anchor is an error before anything trains."""
+    """Tracklets lifted through the noisy cameras say so (``Tracklets.anchor``) and the default ``agent_anchor``
+    ("auto") then anchors the priors' agents to the camera node (nodes/rigid.py); the finished scene keeps that.
+    Exact world boxes stay in the world, ``--agent-anchor world`` overrides the bundle, and an unknown anchor is an
+    error before anything trains."""
+    from agg.io.bundle import SceneBundle
     from agg.scene import Scene
 
+    assert json.loads((scene / "scene.json").read_text())["config"]["agent_anchor"] == "world"  # exact boxes
+    noise = NoiseConfig(camera_translation_max=0.1, boxes_follow_cameras=True)
+    gt, priors = generate(SceneConfig(seed=2, frames=10, width=128, height=80), noise)
+    bundle = write_bundle(tmp_path / "lifted", gt, priors, noise).path
+    assert SceneBundle.load(bundle).tracklets.anchor == "camera"
     out = tmp_path / "anchored"
-    assert main(["reconstruct", str(scene.parent / "bundle"), "-o", str(out), "--preset", "tiny", "--iterations", "20",
-                 "--agent-anchor", "camera", "--no-eval"]) == 0
+    assert main(["reconstruct", str(bundle), "-o", str(out), "--preset", "tiny", "--iterations", "20",
+                 "--no-eval"]) == 0
     assert json.loads((out / "scene.json").read_text())["config"]["agent_anchor"] == "camera"
     graph = Scene.load(out).graph
     anchored = torch.cat([n.anchored for n in graph.agent_nodes()])
@@ -94,8 +102,13 @@ def test_camera_anchored_agents_train_and_keep_their_flag(scene, tmp_path):
     node.anchored[k] = False
     torch.testing.assert_close(torch.linalg.inv(graph.camera.prior[frame]) @ node.world_from_box(frame)[k], view,
                                atol=1e-4, rtol=0)  # ...by exactly that correction
+    world = tmp_path / "world"
+    assert main(["reconstruct", str(bundle), "-o", str(world), "--preset", "tiny", "--iterations", "2",
+                 "--agent-anchor", "world", "--no-eval"]) == 0
+    assert json.loads((world / "scene.json").read_text())["config"]["agent_anchor"] == "world"
+    assert not any(n.anchored.any() for n in Scene.load(world).graph.agent_nodes())
     with pytest.raises(ValueError, match="agent_anchor"):
-        reconstruct(scene.parent / "bundle", tmp_path / "bad", "tiny", overrides={"agent_anchor": "box"})
+        reconstruct(bundle, tmp_path / "bad", "tiny", overrides={"agent_anchor": "box"})
 
 
 def test_eval_prints_the_stable_json_keys(scene, capsys):

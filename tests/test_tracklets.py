@@ -279,6 +279,7 @@ def test_result_writes_to_a_bundle(clip, tmp_path):
     back = SceneBundle.load(tmp_path / "scene").tracklets
     assert list(back.ids) == list(res.tracklets.ids) and back.classes == res.tracklets.classes
     assert np.array_equal(np.asarray(back.valid), res.tracklets.valid)
+    assert res.tracklets.anchor == back.anchor == "camera"  # lifted through world_from_camera (TrainConfig.agent_anchor)
 
 
 # --------------------------------------------------------------------------------------------------------------

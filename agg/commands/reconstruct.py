@@ -28,9 +28,10 @@ def add_parser(subparsers) -> None:
     p.add_argument("--semantic-min-contrast", type=_contrast, metavar="RATIO|none",
                    help="train without the semantic loss when the attention maps separate the priors' dynamic masks "
                         "by less than RATIO (default 1.5); 'none' keeps it on whatever the maps (the paper's rule)")
-    p.add_argument("--agent-anchor", choices=("world", "camera"),
+    p.add_argument("--agent-anchor", choices=("auto", "world", "camera"),
                    help="camera: the priors' agents move with the camera's refinement, as tracklets lifted through "
-                        "the estimated cameras do (default world: they keep their world poses; docs/TRAINING.md)")
+                        "the estimated cameras do; world: they keep their world poses; auto (default): what the "
+                        "bundle's tracklets were measured against (camera for agg priors; docs/TRAINING.md)")
     p.add_argument("--max-frames", type=int, metavar="N", help="keep at most N frames of a video")
     p.add_argument("--intrinsics", metavar="FILE|fx,fy,cx,cy", help="camera intrinsics (see agg priors)")
     p.add_argument("--no-resume", action="store_true", help="start over even if SCENE has a checkpoint")

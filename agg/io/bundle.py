@@ -16,12 +16,12 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from agg.io.bundle_priors import (PROTOTYPE_NAMES, TRACK_CLASSES, BundlePriorsMixin, SemanticFeatures, Tracklets,
-                                  _check, _save_npy, _shape_str)
+from agg.io.bundle_priors import (PROTOTYPE_NAMES, TRACK_ANCHORS, TRACK_CLASSES, BundlePriorsMixin, SemanticFeatures,
+                                  Tracklets, _check, _save_npy, _shape_str)
 from agg.io.errors import BundleExistsError, BundleNotFoundError, BundleValidationError, BundleVersionError
 
-__all__ = ["FORMAT", "VERSION", "PARTS", "TRACK_CLASSES", "PROTOTYPE_NAMES", "SceneBundle", "LazyFrames", "Tracklets",
-           "SemanticFeatures", "rebase_to_first_camera", "compute_scale_factor"]
+__all__ = ["FORMAT", "VERSION", "PARTS", "TRACK_CLASSES", "TRACK_ANCHORS", "PROTOTYPE_NAMES", "SceneBundle",
+           "LazyFrames", "Tracklets", "SemanticFeatures", "rebase_to_first_camera", "compute_scale_factor"]
 
 FORMAT = "agg-bundle"
 VERSION = 1
@@ -209,6 +209,7 @@ class SceneBundle(BundlePriorsMixin):
             kk = len(tr.classes)
             _check(tr.boxes.shape == (kk, n, 7), f"tracklet boxes are {tr.boxes.shape}, expected ({kk}, {n}, 7)")
             _check(tr.valid.shape == (kk, n), f"tracklet valid is {tr.valid.shape}, expected ({kk}, {n})")
+            _check(tr.anchor in TRACK_ANCHORS, f"tracklets.anchor must be one of {TRACK_ANCHORS}, got {tr.anchor!r}")
         sem = self.semantics
         if sem is not None:
             _check(sem.features.ndim == 4 and sem.features.shape[0] == n,

@@ -17,6 +17,7 @@ import numpy as np
 from agg.io.errors import BundleValidationError
 
 TRACK_CLASSES = ("rigid", "non-rigid")
+TRACK_ANCHORS = ("world", "camera")
 PROTOTYPE_NAMES = ("rigid", "non-rigid", "background")
 
 @dataclass
@@ -29,6 +30,9 @@ class Tracklets:
     valid: np.ndarray  # [K, T] bool
     confidence: np.ndarray | None = None  # [K, T] float32 in [0, 1]
     labels: list[str] | None = None  # [K] free text
+    anchor: str = "world"  # what the boxes were measured against: "world", independently of the bundle's camera
+    # poses (ground truth, annotations); "camera", each frame's box from that frame's camera and lifted into the
+    # world through the bundle's poses (agg priors), so it carries those poses' error (TrainConfig.agent_anchor)
 
     def box_size(self, k: int) -> np.ndarray:
         """[3] median (l, h, w) of track row k's valid boxes, in box-frame axis order (x = l, y = h, z = w); NaN
@@ -160,7 +164,7 @@ class BundlePriorsMixin:
                          classes=[t["class"] for t in tracks], boxes=self._npy(e["boxes_file"]),
                          valid=self._npy(e["valid_file"]),
                          confidence=self._npy(e["confidence_file"]) if e.get("confidence_file") else None,
-                         labels=labels if any(labels) else None)
+                         labels=labels if any(labels) else None, anchor=e.get("anchor", "world"))
 
     def write_tracklets(self, tracklets: Tracklets) -> None:
         n, t = self.num_frames, tracklets
@@ -170,6 +174,7 @@ class BundlePriorsMixin:
         valid = np.asarray(t.valid, dtype=bool)
         _check(ids.shape == (k,) and len(set(ids.tolist())) == k, f"tracklet ids must be {k} unique integers")
         _check(all(c in TRACK_CLASSES for c in t.classes), f"tracklet classes must be in {TRACK_CLASSES}")
+        _check(t.anchor in TRACK_ANCHORS, f"tracklet anchor must be one of {TRACK_ANCHORS}, got {t.anchor!r}")
         _check(boxes.shape == (k, n, 7), f"tracklet boxes must be [{k}, {n}, 7], got {boxes.shape}")
         _check(valid.shape == (k, n), f"tracklet valid must be [{k}, {n}], got {valid.shape}")
         _check(bool(np.isfinite(boxes[..., :3][valid]).all()), "valid tracklet entries need finite centres")
@@ -187,6 +192,8 @@ class BundlePriorsMixin:
             _check(c.shape == (k, n) and bool(np.all((c >= 0) & (c <= 1))), "tracklet confidence must be [K, T] in [0, 1]")
             _save_npy(self.path / "tracklets/confidence.npy", c)
             entry["confidence_file"] = "tracklets/confidence.npy"
+        if t.anchor != "world":  # absent means "world", as in bundles written before the key existed
+            entry["anchor"] = t.anchor
         self._manifest["tracklets"] = entry
         self._write_manifest()
 

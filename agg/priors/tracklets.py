@@ -314,7 +314,8 @@ def track_agents(masks: np.ndarray, depth: np.ndarray, K: np.ndarray, world_from
         valid[k, filled] = True  # confidence stays 0 there: no detection, a box from the track
     tracklets = Tracklets(ids=np.arange(1, n + 1, dtype=np.int64), classes=classes, boxes=boxes, valid=valid,
                           confidence=np.clip(confidence, 0, 1),
-                          labels=["pedestrian" if c == "non-rigid" else "vehicle" for c in classes])
+                          labels=["pedestrian" if c == "non-rigid" else "vehicle" for c in classes],
+                          anchor="camera")  # each box lifted from its frame's camera through world_from_camera
     return TrackResult(tracklets, boxes2d, centres2d, instance, detections)
 
 

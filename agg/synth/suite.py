@@ -134,7 +134,8 @@ def write_bundle(path: str | Path, gt: GroundTruth, priors: Priors, noise: Noise
         bundle.write_sparse_depth(_sparse_points(priors.depth), source=depth_source)
     bundle.write_dynamic_masks(priors.instance > 0, source="synthetic")
     bundle.write_tracklets(Tracklets(priors.track_ids, list(priors.track_classes), priors.boxes, priors.valid,
-                                     labels=list(priors.track_labels)))
+                                     labels=list(priors.track_labels),
+                                     anchor="camera" if noise.boxes_follow_cameras else "world"))
     emb = gt.embeddings
     bundle.write_semantics(SemanticFeatures(priors.features.astype(np.float16), emb.C_bg, emb.C_ag,
                                             prototypes=emb.prototypes, prototype_space="pca"))

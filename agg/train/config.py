@@ -88,9 +88,10 @@ class TrainConfig:
     densify_grad: str = "photo"  # what the densifier's screen gradient is of: "photo" (L_photo) | "total" (+ L_sem)
     restart_moments: bool = False  # True: a group's Adam state restarts when the loss it steps on changes (Eq. 3
     # on, off or to the other map; agg/train/moments.py)
-    agent_anchor: str = "world"  # "camera": the priors' agents move with the camera node's corrections, as
+    agent_anchor: str = "auto"  # "camera": the priors' agents move with the camera node's corrections, as
     # tracklets lifted into the world through the estimated cameras do (nodes/rigid.py); "world": they keep their
-    # world poses (docs/TRAINING.md "Agents anchored to the camera")
+    # world poses; "auto": what the bundle's tracklets say they were measured against (Tracklets.anchor;
+    # docs/TRAINING.md "Agents anchored to the camera")
     agent_box_margin: float | None = 0.25  # agents' canonical means stay in their box grown by this fraction of its
     # half extents (None: free, as before; docs/TRAINING.md "Agents stay in their boxes")
     ablate: frozenset = frozenset()
@@ -104,8 +105,8 @@ class TrainConfig:
     def __post_init__(self):
         if self.densify_grad not in ("photo", "total"):
             raise ValueError(f"densify_grad must be 'photo' or 'total', got {self.densify_grad!r}")
-        if self.agent_anchor not in ("world", "camera"):
-            raise ValueError(f"agent_anchor must be 'world' or 'camera', got {self.agent_anchor!r}")
+        if self.agent_anchor not in ("auto", "world", "camera"):
+            raise ValueError(f"agent_anchor must be 'auto', 'world' or 'camera', got {self.agent_anchor!r}")
         if not 0.0 < self.tick_share < 1.0:
             raise ValueError(f"tick_share must lie strictly between 0 and 1, got {self.tick_share}")
 

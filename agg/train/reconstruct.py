@@ -105,8 +105,19 @@ def with_gt_poses(bundle: SceneBundle, out: Path) -> SceneBundle:
         boxes[..., :3] = s * boxes[..., :3] @ r.T + sim.translation
         boxes[..., 3:6] *= s
         boxes[..., 6] += np.arctan2(r[0, 2], r[2, 2])  # yaw about world y
-        b.write_tracklets(Tracklets(tr.ids, tr.classes, boxes, tr.valid, tr.confidence, tr.labels))
+        # "world": the boxes carry the estimated cameras' error, which the camera node's refinement around the
+        # ground truth does not follow
+        b.write_tracklets(Tracklets(tr.ids, tr.classes, boxes, tr.valid, tr.confidence, tr.labels, anchor="world"))
     return b
+
+
+def agent_anchor_for(cfg: TrainConfig, bundle: SceneBundle) -> str:
+    """"world" or "camera": the config's agent anchor, with "auto" read from the bundle's tracklets (what their
+    boxes were measured against; "world" without tracklets)."""
+    if cfg.agent_anchor != "auto":
+        return cfg.agent_anchor
+    tracks = bundle.tracklets
+    return tracks.anchor if tracks is not None else "world"
 
 
 def _graph_for(bundle: SceneBundle, cfg: TrainConfig, metric: MetricScale) -> SceneGraph:
@@ -117,7 +128,7 @@ def _graph_for(bundle: SceneBundle, cfg: TrainConfig, metric: MetricScale) -> Sc
     graph = SceneGraph.from_bundle(bundle, cfg.init,
                                    deform=replace(deform, pos_scale=deform.pos_scale * metric.units_per_metre))
     for node in graph.agent_nodes():  # the priors' tracklets; agents spawned later keep their world tracks
-        node.anchored.fill_(cfg.agent_anchor == "camera")
+        node.anchored.fill_(agent_anchor_for(cfg, bundle) == "camera")
     return graph
 
 
@@ -147,6 +158,7 @@ def reconstruct(input_path: str | Path, scene_dir: str | Path, preset: str | Tra
     bundle = prepare_bundle(input_path, scene_dir, progress, max_frames, intrinsics, should_stop)
     if gt_poses:
         bundle = with_gt_poses(bundle, scene_dir / "bundle_gt_poses")
+    cfg = replace(cfg, agent_anchor=agent_anchor_for(cfg, bundle))  # scene.json records what "auto" became
     t_priors = time.perf_counter() - t0
     seed_everything(cfg.seed)
     data = load_train_data(bundle, cfg.max_width, cfg.attention_norm, cfg.eval_every,
