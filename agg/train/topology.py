@@ -64,11 +64,11 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from agg.nodes.gaussians import PARAM_NAMES, GaussianParams, append_rows, keep_rows
-from agg.nodes.rigid import RigidAgents, matrix_to_quat, quat_multiply
+from agg.nodes.gaussians import GaussianParams, append_rows
 from agg.priors.tracklet_ground import ground_planes
 from agg.train import topology_anchor as ta
 from agg.train import topology_demote as td
+from agg.train import topology_surgery as surgery
 from agg.train import topology_track as tt
 from agg.train.topology_demote import DemoteConfig
 from agg.train.topology_motion import MotionConfig
@@ -145,31 +145,6 @@ def _box_poses(node) -> np.ndarray:
     with torch.no_grad():
         poses = torch.stack([node.world_from_box(t) for t in range(node.num_frames)])
     return poses.cpu().numpy().astype(np.float64)
-
-
-def _rows(params: GaussianParams, idx: np.ndarray) -> dict[str, Tensor]:
-    i = torch.as_tensor(idx, dtype=torch.long, device=params.means.device)
-    return {n: getattr(params, n).detach()[i].clone() for n in PARAM_NAMES}
-
-
-def _to_canonical(rows: dict[str, Tensor], world_from_box: np.ndarray) -> GaussianParams:
-    """Background rows -> GaussianParams in the box frames world_from_box [M, 4, 4] (one pose per row)."""
-    dev = rows["means"].device
-    wfb = torch.as_tensor(world_from_box, dtype=torch.float32, device=dev)
-    rt = wfb[:, :3, :3].transpose(1, 2)  # [M, 3, 3] box_from_world rotation
-    means = (rt @ (rows["means"] - wfb[:, :3, 3])[..., None])[..., 0]
-    quats = quat_multiply(matrix_to_quat(rt), rows["quats"])
-    return GaussianParams(means, rows["log_scales"], quats, rows["opacity_logits"], rows["sh"])
-
-
-def _append_to_instances(node, params: GaussianParams, instance: np.ndarray, optimizer) -> None:
-    """Append Gaussians (canonical frame) to existing instances of an agent node."""
-    inst = torch.as_tensor(instance, dtype=torch.long, device=node.instance.device)
-    if hasattr(node, "append_gaussians"):
-        node.append_gaussians(params, inst, optimizer)
-        return
-    append_rows(node.gaussians, params, optimizer)
-    node.instance = torch.cat([node.instance, inst])
 
 
 class TopologyEvolution:
@@ -453,70 +428,23 @@ class TopologyEvolution:
 
     def _apply(self, graph, optimizer, report: dict, target: np.ndarray, target_frame: np.ndarray,
                boxes: list[dict], spawn: list[dict]) -> dict:
-        """Graph surgery: move reassigned rows to their agents, spawn the new agents, shrink the background."""
-        bg = graph.background
-        moved = target[:, 0] >= 0
-        rows_changed: set[str] = set()
-        names = {id(graph.rigid): "rigid", id(getattr(graph, "nonrigid", None)): "nonrigid"}
-        # gather every moved row's parameters before the background shrinks
-        reassign = []
-        for a, box in enumerate(boxes):
-            sel = np.flatnonzero(target[:, 0] == a)
-            if len(sel):
-                poses = box["poses"][target_frame[sel], target[sel, 1]]  # [M, 4, 4]
-                reassign.append((box["node"], _to_canonical(_rows(bg, sel), poses), target[sel, 1]))
-        spawned = []
-        for plan in spawn:
-            poses = plan["poses"][plan["frame_of"]]
-            params = _to_canonical(_rows(bg, plan["rows"]), poses)
-            if plan.get("box") is not None:  # into its box (spawn_box_rows="all" leaves rows outside it)
-                lim = torch.as_tensor(plan["box"], dtype=params.means.dtype, device=params.means.device)  # [3]
-                with torch.no_grad():
-                    params.means.clamp_(min=-lim, max=lim)
-            spawned.append(params)
-            moved[plan["rows"]] = True
-        keep = torch.as_tensor(~moved, device=bg.means.device)
-        if moved.any():
-            keep_rows(bg, keep, optimizer)
-            rows_changed.add("background")
-            if self.sum is not None:
-                self.sum = self.sum[:, keep.to(self.sum.device)].contiguous()
-        for node, params, inst in reassign:
-            _append_to_instances(node, params, inst, optimizer)
-            report["reassigned"] += len(params)
-            rows_changed.add(names.get(id(node), "agent"))
-        if spawned:
-            next_id = self.next_track_id(graph)
-            ids = list(range(next_id, next_id + len(spawned)))
-            wfb = torch.as_tensor(np.stack([p["poses"] for p in spawn], 1), dtype=torch.float32)  # [T, k, 4, 4]
-            valid = torch.as_tensor(np.stack([p["valid"] for p in spawn], 1))  # [T, k]
-            # local instance index of every row, counted before the sets are concatenated into spawned[0]
-            instance = torch.cat([torch.full((len(g),), j, dtype=torch.long) for j, g in enumerate(spawned)])
-            params = spawned[0]
-            for extra in spawned[1:]:
-                append_rows(params, extra)
-            # the box the node confines each spawn to: its size guessed, grown for where it is placed (None: free)
-            boxes_half = torch.as_tensor(np.stack([np.full(3, np.inf) if p.get("box") is None else p["box"]
-                                                   for p in spawn]), dtype=torch.float32)  # [k, 3]
-            if graph.rigid is None:
-                dev = bg.means.device
-                graph.rigid = RigidAgents(params, instance, wfb, valid, torch.as_tensor(ids), boxes_half).to(dev)
-                graph.rigid.speed_free.fill_(True)  # its track's speed is an estimate: trained (nodes/rigid.py)
-                report["new_nodes"].append("rigid")
-            else:
-                graph.rigid.add_instances(params, instance, wfb, valid,
-                                          torch.as_tensor(ids, device=graph.rigid.track_ids.device), optimizer,
-                                          half_extents=boxes_half, speed_free=True)
-            rows_changed.add("rigid")
-            report["spawned"] = ids
-            self.box_half.update({tid: np.asarray(p["half"], np.float64) for tid, p in zip(ids, spawn)
+        """Graph surgery (``topology_surgery.operate``), then the bookkeeping: the gradient statistics follow the
+        background's rows, spawned ids are reserved and their boxes kept for re-anchoring."""
+        done = surgery.operate(graph, optimizer, target, target_frame, boxes, spawn, self.next_track_id(graph))
+        if self.sum is not None and not bool(done.keep.all()):
+            self.sum = self.sum[:, done.keep.to(self.sum.device)].contiguous()
+        report["reassigned"] += done.reassigned
+        report["new_nodes"] += done.new_nodes
+        if done.spawned:
+            report["spawned"] = done.spawned
+            self.box_half.update({tid: np.asarray(p["half"], np.float64) for tid, p in zip(done.spawned, spawn)
                                   if p.get("half") is not None})
             report["spawned_classes"] = [p["class"] for p in spawn]
-            self.retired |= set(ids)
-            self.spawned_ids |= set(ids)
+            self.retired |= set(done.spawned)
+            self.spawned_ids |= set(done.spawned)
         report["structure_changed"] = bool(report["pruned"] or report["spawned"] or report["new_nodes"])
-        report["rows_changed"] = sorted(rows_changed | set(report["rows_changed"]))
-        report["bg_src"] = report["bg_src"][keep]
+        report["rows_changed"] = sorted(done.rows_changed | set(report["rows_changed"]))
+        report["bg_src"] = report["bg_src"][done.keep]
         return self._finish(report)
 
     def _finish(self, report: dict) -> dict:
