@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import av
@@ -17,6 +18,7 @@ from agg.synth.corrupt import NoiseConfig
 from agg.synth.scene import SceneConfig
 from agg.synth.suite import generate, write_bundle
 from agg.train import reconstruct
+from agg.train.config import get_preset
 
 SAMPLE = str(Path(__file__).resolve().parents[1] / "samples" / "dashcam.mp4")
 
@@ -38,6 +40,14 @@ def scene(tmp_path_factory):
     out = root / "scene"
     assert main(["reconstruct", str(bundle), "-o", str(out), "--preset", "tiny", "--json"]) == 0
     return out
+
+
+@pytest.fixture(scope="module")
+def lifted(tmp_path_factory):
+    """A bundle whose tracklets were lifted through its noisy cameras (``Tracklets.anchor == "camera"``)."""
+    noise = NoiseConfig(camera_translation_max=0.1, boxes_follow_cameras=True)
+    gt, priors = generate(SceneConfig(seed=2, frames=10, width=128, height=80), noise)
+    return write_bundle(tmp_path_factory.mktemp("lifted") / "bundle", gt, priors, noise).path
 
 
 def test_reconstruct_writes_a_complete_scene(scene, capsys):
@@ -71,7 +81,7 @@ def test_the_semantic_gate_is_a_reconstruct_option(scene, tmp_path, capsys):
     assert exc.value.code == 2 and "must be > 0" in capsys.readouterr().err
 
 
-def test_camera_anchored_agents_train_and_keep_their_flag(scene, tmp_path):
+def test_camera_anchored_agents_train_and_keep_their_flag(scene, lifted, tmp_path):
     """Tracklets lifted through the noisy cameras say so (``Tracklets.anchor``) and the default ``agent_anchor``
     ("auto") then anchors the priors' agents to the camera node (nodes/rigid.py); the finished scene keeps that.
     Exact world boxes stay in the world, ``--agent-anchor world`` overrides the bundle, and an unknown anchor is an
@@ -80,9 +90,7 @@ def test_camera_anchored_agents_train_and_keep_their_flag(scene, tmp_path):
     from agg.scene import Scene
 
     assert json.loads((scene / "scene.json").read_text())["config"]["agent_anchor"] == "world"  # exact boxes
-    noise = NoiseConfig(camera_translation_max=0.1, boxes_follow_cameras=True)
-    gt, priors = generate(SceneConfig(seed=2, frames=10, width=128, height=80), noise)
-    bundle = write_bundle(tmp_path / "lifted", gt, priors, noise).path
+    bundle = lifted
     assert SceneBundle.load(bundle).tracklets.anchor == "camera"
     out = tmp_path / "anchored"
     assert main(["reconstruct", str(bundle), "-o", str(out), "--preset", "tiny", "--iterations", "20",
@@ -109,6 +117,28 @@ def test_camera_anchored_agents_train_and_keep_their_flag(scene, tmp_path):
     assert not any(n.anchored.any() for n in Scene.load(world).graph.agent_nodes())
     with pytest.raises(ValueError, match="agent_anchor"):
         reconstruct(bundle, tmp_path / "bad", "tiny", overrides={"agent_anchor": "box"})
+
+
+def test_gt_poses_move_the_priors_into_the_ground_truth_frame(lifted, tmp_path):
+    """``--gt-poses``: the copy trains on the ground-truth cameras; depth and boxes follow the Sim(3) that aligns
+    the estimate with them, and the boxes no longer count as lifted through the training cameras ("world")."""
+    from agg.eval.trajectory import align_sim3
+    from agg.io.bundle import SceneBundle
+    from agg.train.reconstruct import agent_anchor_for, with_gt_poses
+
+    src = SceneBundle.load(lifted)
+    out = with_gt_poses(src, tmp_path / "gt_poses")
+    np.testing.assert_array_equal(out.world_from_camera, src.gt.world_from_camera)
+    sim = align_sim3(src.world_from_camera, src.gt.world_from_camera)
+    before, after = src.tracklets, out.tracklets
+    v = before.valid
+    np.testing.assert_allclose(after.boxes[..., :3][v], sim.scale * before.boxes[..., :3][v] @ sim.rotation.T
+                               + sim.translation, atol=1e-9)
+    np.testing.assert_allclose(after.boxes[..., 3:6][v], sim.scale * before.boxes[..., 3:6][v], atol=1e-9)
+    np.testing.assert_allclose(np.asarray(out.dense_depth), sim.scale * np.asarray(src.dense_depth), rtol=1e-6)
+    cfg = get_preset("tiny")
+    assert after.anchor == agent_anchor_for(cfg, out) == "world" and agent_anchor_for(cfg, src) == "camera"
+    assert agent_anchor_for(replace(cfg, agent_anchor="camera"), out) == "camera"  # an explicit choice wins
 
 
 def test_eval_prints_the_stable_json_keys(scene, capsys):
