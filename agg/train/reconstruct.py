@@ -112,8 +112,8 @@ def with_gt_poses(bundle: SceneBundle, out: Path) -> SceneBundle:
 
 
 def agent_anchor_for(cfg: TrainConfig, bundle: SceneBundle) -> str:
-    """"world" or "camera": the config's agent anchor, with "auto" read from the bundle's tracklets (what their
-    boxes were measured against; "world" without tracklets)."""
+    """The anchor ("world" or "camera") of the priors' agents: the config's, with "auto" read from the bundle's
+    tracklets (what their boxes were measured against; "world" without tracklets)."""
     if cfg.agent_anchor != "auto":
         return cfg.agent_anchor
     tracks = bundle.tracklets
