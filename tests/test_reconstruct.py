@@ -81,7 +81,7 @@ def test_the_semantic_gate_is_a_reconstruct_option(scene, tmp_path, capsys):
     assert exc.value.code == 2 and "must be > 0" in capsys.readouterr().err
 
 
-def test_camera_anchored_agents_train_and_keep_their_flag(scene, lifted, tmp_path):
+def test_camera_anchored_agents_train_and_keep_their_flag(scene, lifted, tmp_path, capsys):
     """Tracklets lifted through the noisy cameras say so (``Tracklets.anchor``) and the default ``agent_anchor``
     ("auto") then anchors the priors' agents to the camera node (nodes/rigid.py); the finished scene keeps that.
     Exact world boxes stay in the world, ``--agent-anchor world`` overrides the bundle, and an unknown anchor is an
@@ -95,7 +95,9 @@ def test_camera_anchored_agents_train_and_keep_their_flag(scene, lifted, tmp_pat
     out = tmp_path / "anchored"
     assert main(["reconstruct", str(bundle), "-o", str(out), "--preset", "tiny", "--iterations", "20",
                  "--no-eval"]) == 0
-    assert json.loads((out / "scene.json").read_text())["config"]["agent_anchor"] == "camera"
+    meta = json.loads((out / "scene.json").read_text())
+    assert meta["config"]["agent_anchor"] == meta["summary"]["agent_anchor"] == "camera"
+    assert "the priors' boxes move with the camera's refinement" in capsys.readouterr().out
     graph = Scene.load(out).graph
     anchored = torch.cat([n.anchored for n in graph.agent_nodes()])
     spawned = set(json.loads((out / "scene.json").read_text())["summary"]["agents_spawned"])
@@ -114,6 +116,7 @@ def test_camera_anchored_agents_train_and_keep_their_flag(scene, lifted, tmp_pat
     assert main(["reconstruct", str(bundle), "-o", str(world), "--preset", "tiny", "--iterations", "2",
                  "--agent-anchor", "world", "--no-eval"]) == 0
     assert json.loads((world / "scene.json").read_text())["config"]["agent_anchor"] == "world"
+    assert "move with the camera" not in capsys.readouterr().out
     assert not any(n.anchored.any() for n in Scene.load(world).graph.agent_nodes())
     with pytest.raises(ValueError, match="agent_anchor"):
         reconstruct(bundle, tmp_path / "bad", "tiny", overrides={"agent_anchor": "box"})

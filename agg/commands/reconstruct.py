@@ -126,6 +126,9 @@ def run(args: argparse.Namespace) -> int:
         gate = summary.get("semantic") or {}
         if gate.get("active") is False:
             print(f"semantic loss: off, {gate['reason']}")
+        if summary.get("agent_anchor") == "camera" and summary["initial"]["n_agents"]:
+            print("agents: the priors' boxes move with the camera's refinement (their tracklets were lifted through "
+                  "the estimated cameras; --agent-anchor world keeps them in place)")
         if m:
             agents = "n/a" if m.get("psnr_agents") is None else f"{m['psnr_agents']:.2f} dB"
             print(f"NVS ({m['n_test_frames']} held-out frames): PSNR {m['psnr']:.2f} dB  SSIM {m['ssim']:.3f}  "

@@ -191,7 +191,7 @@ def reconstruct(input_path: str | Path, scene_dir: str | Path, preset: str | Tra
                "seconds_train": round(t_train, 2), "initial": initial, "n_gaussians": graph.num_gaussians(),
                "n_agents": graph.num_agents, "nodes": _node_names(graph), "agents_spawned": trainer.spawned,
                "agents_pruned": trainer.pruned, "topology": trainer.topology_log,
-               "reanchored": trainer.reanchored, "semantic": data.semantic,
+               "reanchored": trainer.reanchored, "semantic": data.semantic, "agent_anchor": cfg.agent_anchor,
                "tracking": trainer.tracking_log,
                "final_train_psnr": _recent_psnr(trainer.history)}
     from agg.export import export_scene
