@@ -232,6 +232,10 @@ def test_confine_clamps_means_into_the_grown_box_and_leaves_unknown_sizes_free()
     free = _node(means.clone(), [0, 0, 1], None)
     free.confine(0.25)
     assert torch.equal(free.gaussians.means.detach(), means)
+    one = _node(means.clone(), [0, 0, 1], [[2.0, 1.0, 1.0], [1.0, 1.0, 1.0]])
+    one.confine(0.0, torch.tensor([1]))  # only instance 1, into its box itself
+    assert torch.equal(one.gaussians.means.detach()[:2], means[:2])
+    assert torch.equal(one.gaussians.means.detach()[2], torch.tensor([1.0, 1.0, -1.0]))
 
 
 def test_box_sizes_follow_instances_and_checkpoints():

@@ -153,11 +153,14 @@ class RigidAgents(nn.Module):
         """Parameters with a per-instance axis 1 ([T, K, ...]); ``add_instances`` / ``remove_instances`` resize them."""
         return [self.omega, self.tau]
 
-    def confine(self, margin: float) -> None:
+    def confine(self, margin: float, instances: Tensor | None = None) -> None:
         """Clamp every canonical mean into its instance's box grown by ``margin`` (a fraction of the half extents),
         in place; instances of unknown size are left free. Called after each optimiser step on the agents: a
-        projected gradient step, so no Gaussian can drift out to model the road beside or under its agent."""
+        projected gradient step, so no Gaussian can drift out to model the road beside or under its agent.
+        ``instances`` [k] (instance indices): only their Gaussians (topology evolution puts a spawn into its box)."""
         lim = (self.half_extents * (1.0 + margin))[self.instance]  # [N, 3]
+        if instances is not None:  # the others' limits open up
+            lim = torch.where(torch.isin(self.instance, instances.to(self.instance))[:, None], lim, torch.inf)
         if len(lim) and torch.isfinite(lim).any():
             with torch.no_grad():
                 means = self.gaussians.means

@@ -76,12 +76,7 @@ def operate(graph, optimizer, target: np.ndarray, target_frame: np.ndarray, boxe
     spawned = []
     for plan in spawn:
         poses = plan["poses"][plan["frame_of"]]
-        params = to_canonical(rows_of(bg, plan["rows"]), poses)
-        if plan.get("box") is not None:  # into its box (spawn_box_rows="all" leaves rows outside it)
-            lim = torch.as_tensor(plan["box"], dtype=params.means.dtype, device=params.means.device)  # [3]
-            with torch.no_grad():
-                params.means.clamp_(min=-lim, max=lim)
-        spawned.append(params)
+        spawned.append(to_canonical(rows_of(bg, plan["rows"]), poses))
         moved[plan["rows"]] = True
     done = Surgery(keep=torch.as_tensor(~moved, device=bg.means.device))
     if moved.any():
@@ -112,6 +107,9 @@ def operate(graph, optimizer, target: np.ndarray, target_frame: np.ndarray, boxe
             graph.rigid.add_instances(params, instance, wfb, valid,
                                       torch.as_tensor(ids, device=graph.rigid.track_ids.device), optimizer,
                                       half_extents=boxes_half, speed_free=True)
+        k = graph.rigid.num_instances
+        # each spawn into its box, unmargined (spawn_box_rows="all" leaves rows outside it); unboxed ones stay free
+        graph.rigid.confine(0.0, torch.arange(k - len(spawn), k))
         done.rows_changed.add("rigid")
         done.spawned = ids
     return done
