@@ -6,7 +6,7 @@ import argparse
 import json
 import sys
 
-from agg.train.config import ABLATIONS, PRESETS
+from agg.train.config import ABLATIONS, AGENT_ANCHORS, PRESETS
 
 
 def add_parser(subparsers) -> None:
@@ -28,7 +28,7 @@ def add_parser(subparsers) -> None:
     p.add_argument("--semantic-min-contrast", type=_contrast, metavar="RATIO|none",
                    help="train without the semantic loss when the attention maps separate the priors' dynamic masks "
                         "by less than RATIO (default 1.5); 'none' keeps it on whatever the maps (the paper's rule)")
-    p.add_argument("--agent-anchor", choices=("auto", "world", "camera"),
+    p.add_argument("--agent-anchor", choices=AGENT_ANCHORS,
                    help="camera: the priors' agents move with the camera's refinement, as tracklets lifted through "
                         "the estimated cameras do; world: they keep their world poses; auto (default): what the "
                         "bundle's tracklets were measured against (camera for agg priors; docs/TRAINING.md)")

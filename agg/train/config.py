@@ -17,11 +17,13 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field, fields, replace
 
+from agg.io.bundle_priors import TRACK_ANCHORS
 from agg.nodes.init import InitConfig
 from agg.train.topology import TopologyConfig
 from agg.train.camera_tracking import TrackingConfig
 
 ABLATIONS = ("tick-tock", "semantic", "topology")
+AGENT_ANCHORS = ("auto", *TRACK_ANCHORS)  # "auto": the bundle's Tracklets.anchor
 PAPER_ITERATIONS = 30_000
 
 
@@ -105,8 +107,8 @@ class TrainConfig:
     def __post_init__(self):
         if self.densify_grad not in ("photo", "total"):
             raise ValueError(f"densify_grad must be 'photo' or 'total', got {self.densify_grad!r}")
-        if self.agent_anchor not in ("auto", "world", "camera"):
-            raise ValueError(f"agent_anchor must be 'auto', 'world' or 'camera', got {self.agent_anchor!r}")
+        if self.agent_anchor not in AGENT_ANCHORS:
+            raise ValueError(f"agent_anchor must be one of {AGENT_ANCHORS}, got {self.agent_anchor!r}")
         if not 0.0 < self.tick_share < 1.0:
             raise ValueError(f"tick_share must lie strictly between 0 and 1, got {self.tick_share}")
 
