@@ -35,7 +35,7 @@ import torch
 from agg_suite import VARIANTS, probe_config, synth_bundle  # bench/ is the script's folder
 from agg_suite_curve import add_scene_args, reconstruct_with
 
-BETA1, BETA2 = 0.9, 0.999  # torch.optim.Adam's defaults, which the trainer uses
+BETA2 = 0.999  # torch.optim.Adam's default, which the trainer uses
 STATS = ("cos", "ratio", "total_cos", "pre_cos")
 
 
@@ -48,7 +48,7 @@ def rms(opt, p: torch.nn.Parameter, eps: float) -> torch.Tensor:
     """[numel] Adam's sqrt(v_hat) + eps of ``p`` before this step (1 where it has no state yet)."""
     st = opt.state.get(p)
     if not st or float(st["step"]) == 0:
-        return torch.ones(p.numel())
+        return torch.ones(p.numel(), device=p.device)
     return ((st["exp_avg_sq"] / (1 - BETA2 ** float(st["step"]))).sqrt() + eps).flatten()
 
 
