@@ -21,8 +21,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from agg_suite import VARIANTS, probe_config, synth_bundle  # bench/ is the script's folder
-from agg_suite_curve import add_scene_args, reconstruct_with
+from agg_suite import probe_config, synth_bundle  # bench/ is the script's folder
+from agg_suite_curve import add_scene_args, reconstruct_with, suite_runs
 from agg_suite_frames import camera_error
 
 
@@ -73,12 +73,9 @@ def main(argv=None) -> int:
     cfg, tag = probe_config(args.preset, args.set)
     bundle = synth_bundle(work, args.seed, args.noise, args.frames, args.width, args.height)
     cameras = [int(c) for c in args.cameras.split(",")]
-    for variant in args.variants.split(","):
-        if variant not in VARIANTS:
-            raise SystemExit(f"unknown variant {variant!r} (one of {', '.join(VARIANTS)})")
-        name = f"camtrace_s{args.seed}_n{args.noise:g}_{variant}_{args.preset}" + (f"_{tag}" if tag else "")
+    for name, ablate in suite_runs(args, "camtrace", tag):
         print(name, flush=True)
-        trace(bundle, work / "scenes" / name, cfg, VARIANTS[variant], cameras, args.until, max(args.every, 1),
+        trace(bundle, work / "scenes" / name, cfg, ablate, cameras, args.until, max(args.every, 1),
               work / "camtrace" / f"{name}.jsonl")
     return 0
 

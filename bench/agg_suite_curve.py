@@ -93,6 +93,16 @@ def add_scene_args(p: argparse.ArgumentParser, variants: str) -> None:
     p.add_argument("--work", default=str(ROOT / "bench" / "out" / "agg_suite"))
 
 
+def suite_runs(args: argparse.Namespace, prefix: str, tag: str, agent_noise: float = 0.0):
+    """(name, ablation) of each of ``args.variants`` in turn, the name as ``prefix_sSEED_nNOISE[_aAGENT]_VARIANT_PRESET
+    [_TAG]`` (``tag`` from ``probe_config``); an unknown variant ends the script when its turn comes."""
+    for variant in args.variants.split(","):
+        if variant not in VARIANTS:
+            raise SystemExit(f"unknown variant {variant!r} (one of {', '.join(VARIANTS)})")
+        yield (f"{prefix}_s{args.seed}_n{args.noise:g}" + (f"_a{agent_noise:g}" if agent_noise else "")
+               + f"_{variant}_{args.preset}" + (f"_{tag}" if tag else "")), VARIANTS[variant]
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     add_scene_args(p, "agg,no-tick-tock")
@@ -102,14 +112,8 @@ def main(argv=None) -> int:
     work = Path(args.work)
     cfg, tag = probe_config(args.preset, args.set)
     bundle = synth_bundle(work, args.seed, args.noise, args.frames, args.width, args.height, args.agent_noise)
-    a = args.agent_noise
-    for variant in args.variants.split(","):
-        if variant not in VARIANTS:
-            raise SystemExit(f"unknown variant {variant!r} (one of {', '.join(VARIANTS)})")
-        name = (f"curve_s{args.seed}_n{args.noise:g}" + (f"_a{a:g}" if a else "") + f"_{variant}_{args.preset}"
-                + (f"_{tag}" if tag else ""))
-        train_with_curve(bundle, work / "scenes" / name, cfg, VARIANTS[variant], args.every,
-                         work / "curves" / f"{name}.jsonl")
+    for name, ablate in suite_runs(args, "curve", tag, args.agent_noise):
+        train_with_curve(bundle, work / "scenes" / name, cfg, ablate, args.every, work / "curves" / f"{name}.jsonl")
     return 0
 
 

@@ -123,12 +123,18 @@ def graph_depth_errors(graph, bundle, train: list[int], test: list[int], pose_fi
     return out
 
 
-def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+def add_finished_scene_args(p: argparse.ArgumentParser) -> None:
+    """The arguments that name finished suite scenes: the seed, the scenes (folders under WORK/scenes), ``--work``
+    and the camera ``--noise`` of their bundle."""
     p.add_argument("seed", type=int)
     p.add_argument("scenes", nargs="+")
     p.add_argument("--work", default=str(ROOT / "bench" / "out" / "agg_suite"))
     p.add_argument("--noise", type=float, default=1.0)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_finished_scene_args(p)
     p.add_argument("--agent-noise", type=float, default=0.0)
     p.add_argument("--pose-fit", type=int, default=0, help="Adam steps of the held-out camera fit (0: none)")
     args = p.parse_args(argv)

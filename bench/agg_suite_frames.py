@@ -28,8 +28,8 @@ import cv2
 import numpy as np
 import torch
 
-from agg_suite import ROOT, bundle_dir, load_graph  # bench/ is the script's folder, so it is on the path
-from agg_suite_depth import _fit_camera
+from agg_suite import bundle_dir, load_graph  # bench/ is the script's folder, so it is on the path
+from agg_suite_depth import _fit_camera, add_finished_scene_args
 
 
 def camera_error(gt: np.ndarray, est: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -82,10 +82,7 @@ def frame_rows(scene_dir: Path, bundle_path: Path, fit: int = 0) -> list[dict]:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("seed", type=int)
-    p.add_argument("scenes", nargs="+")
-    p.add_argument("--work", default=str(ROOT / "bench" / "out" / "agg_suite"))
-    p.add_argument("--noise", type=float, default=1.0)
+    add_finished_scene_args(p)
     p.add_argument("--fit", type=int, default=60, help="Adam steps of the held-out camera fit (0: none)")
     args = p.parse_args(argv)
     work = Path(args.work)

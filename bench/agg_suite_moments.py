@@ -21,8 +21,8 @@ import argparse
 import json
 from pathlib import Path
 
-from agg_suite import VARIANTS, probe_config, synth_bundle  # bench/ is the script's folder
-from agg_suite_curve import add_scene_args, reconstruct_with
+from agg_suite import probe_config, synth_bundle  # bench/ is the script's folder
+from agg_suite_curve import add_scene_args, reconstruct_with, suite_runs
 
 BETA1, BETA2 = 0.9, 0.999  # torch.optim.Adam's defaults, which the trainer uses
 
@@ -103,11 +103,8 @@ def main(argv=None) -> int:
     work = Path(args.work)
     cfg, tag = probe_config(args.preset, args.set)
     bundle = synth_bundle(work, args.seed, args.noise, args.frames, args.width, args.height)
-    for variant in args.variants.split(","):
-        if variant not in VARIANTS:
-            raise SystemExit(f"unknown variant {variant!r} (one of {', '.join(VARIANTS)})")
-        name = f"moments_s{args.seed}_n{args.noise:g}_{variant}_{args.preset}" + (f"_{tag}" if tag else "")
-        rows = train_with_moments(bundle, work / "scenes" / name, cfg, VARIANTS[variant], args.until,
+    for name, ablate in suite_runs(args, "moments", tag):
+        rows = train_with_moments(bundle, work / "scenes" / name, cfg, ablate, args.until,
                                   work / "moments" / f"{name}.jsonl")
         summary = phase_means(rows)
         (work / "moments" / f"{name}.summary.json").write_text(json.dumps(summary, indent=1))

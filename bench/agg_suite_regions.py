@@ -28,7 +28,8 @@ import cv2
 import numpy as np
 import torch
 
-from agg_suite import ROOT, bundle_dir, load_graph  # bench/ is the script's folder, so it is on the path
+from agg_suite import bundle_dir, load_graph  # bench/ is the script's folder, so it is on the path
+from agg_suite_depth import add_finished_scene_args
 
 PATH_RADIUS_M = 2.5
 
@@ -107,10 +108,7 @@ def region_errors(scene_dir: Path, bundle_path: Path, per_agent: bool = False, f
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("seed", type=int)
-    p.add_argument("scenes", nargs="+")
-    p.add_argument("--work", default=str(ROOT / "bench" / "out" / "agg_suite"))
-    p.add_argument("--noise", type=float, default=1.0)
+    add_finished_scene_args(p)
     p.add_argument("--per-agent", action="store_true", help="also each ground-truth agent's pixels (by id)")
     p.add_argument("--per-frame", action="store_true",
                    help="also each held-out frame's missed-car PSNR and the spawned agents' alpha on it")

@@ -32,8 +32,8 @@ from pathlib import Path
 
 import torch
 
-from agg_suite import VARIANTS, probe_config, synth_bundle  # bench/ is the script's folder
-from agg_suite_curve import add_scene_args, reconstruct_with
+from agg_suite import probe_config, synth_bundle  # bench/ is the script's folder
+from agg_suite_curve import add_scene_args, reconstruct_with, suite_runs
 
 BETA2 = 0.999  # torch.optim.Adam's default, which the trainer uses
 STATS = ("cos", "ratio", "total_cos", "pre_cos")
@@ -158,11 +158,8 @@ def main(argv=None) -> int:
     work = Path(args.work)
     cfg, tag = probe_config(args.preset, args.set)
     bundle = synth_bundle(work, args.seed, args.noise, args.frames, args.width, args.height)
-    for variant in args.variants.split(","):
-        if variant not in VARIANTS:
-            raise SystemExit(f"unknown variant {variant!r} (one of {', '.join(VARIANTS)})")
-        name = f"semgrad_s{args.seed}_n{args.noise:g}_{variant}_{args.preset}" + (f"_{tag}" if tag else "")
-        rows = train_with_semgrad(bundle, work / "scenes" / name, cfg, VARIANTS[variant], args.until,
+    for name, ablate in suite_runs(args, "semgrad", tag):
+        rows = train_with_semgrad(bundle, work / "scenes" / name, cfg, ablate, args.until,
                                   work / "semgrad" / f"{name}.jsonl")
         summary = phase_means(rows)
         (work / "semgrad" / f"{name}.summary.json").write_text(json.dumps(summary, indent=1))
