@@ -100,7 +100,7 @@ def test_camera_anchored_agents_train_and_keep_their_flag(scene, lifted, tmp_pat
     assert "the priors' boxes move with the camera's refinement" in capsys.readouterr().out
     graph = Scene.load(out).graph
     anchored = torch.cat([n.anchored for n in graph.agent_nodes()])
-    spawned = set(json.loads((out / "scene.json").read_text())["summary"]["agents_spawned"])
+    spawned = set(meta["summary"]["agents_spawned"])
     ids = torch.cat([n.track_ids for n in graph.agent_nodes()]).tolist()
     assert anchored.tolist() == [i not in spawned for i in ids] and anchored.any()
     frame = int(torch.nonzero(graph.camera.tau.detach().norm(dim=-1))[0, 0])  # a frame whose camera moved
