@@ -88,6 +88,18 @@ def test_the_full_size_level_finishes_closer_than_half_size(bundle):
     assert errs[(4, 2, 1)][1] < 0.6 * errs[(4, 2)][1], errs  # 0.006 against 0.013 rad
 
 
+def test_centre_only_levels_leave_the_rotations_alone(bundle):
+    """``rotation_from``: the levels before it move the centres alone; the rotation is free from that level on."""
+    g, images = _displaced(bundle)
+    omega0 = g.camera.omega.detach().clone()
+    track_cameras(g, images, [2, 5], TrackingConfig(levels=(4, 2), steps=5, rotation_from=2), scene_extent(g))
+    assert torch.equal(g.camera.omega.detach(), omega0)  # no level turned a camera
+    assert float(g.camera.tau[2].detach().norm()) < 0.39  # the centres moved (from 0.39 m off)
+    g, images = _displaced(bundle)
+    track_cameras(g, images, [2, 5], TrackingConfig(levels=(4, 2), steps=5, rotation_from=1), scene_extent(g))
+    assert not torch.equal(g.camera.omega.detach()[5], omega0[5])  # the second level turned frame 5
+
+
 def test_a_tracking_milestone_in_a_tock_waits_for_the_next_tick(bundle):
     # 30 iterations: warm-up 5, phases of 1 (tick at odd iterations from 5), joint from 20
     tracking = TrackingConfig(at=(6_000, 30_000 * 25 // 30), levels=(4,), steps=2)

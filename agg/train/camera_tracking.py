@@ -19,6 +19,9 @@ against its map:
 - one fresh Adam over the node's ``omega`` and ``tau`` (element-wise, so the frames are independent problems that
   share one step), ``steps`` steps per level; the rates are ``lr_translation x scene extent`` and
   ``lr_rotation`` radians, halved at each finer level;
+- ``rotation_from`` (default 0) makes the levels before it move the centres alone: a sideways centre error looks
+  much like a turn to the photometric loss, and a round that may turn from its first step can take it up as yaw
+  (docs/TRAINING.md, "Yaw for a sideways error");
 - frame 0 stays fixed (the gauge) and held-out frames are never rendered, so their corrections are untouched;
 - a cancellation between two steps puts the corrections back as they were before the round, so a resumed run
   tracks the round again from the same state.
@@ -30,7 +33,7 @@ topology accumulators.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Callable, Sequence
 
 import torch
@@ -48,15 +51,44 @@ class TrackingConfig:
     steps: int = 20  # Adam steps per level
     lr_translation: float = 2e-3  # x scene extent, per step at the coarsest level
     lr_rotation: float = 2e-3  # radians per step at the coarsest level
+    rotation_from: int = 0  # the first level (index into levels) whose steps turn the cameras: the levels
+    # before it move the centres alone (0: every level turns them)
 
     def scaled(self, scale: float) -> "TrackingConfig":
-        return TrackingConfig(tuple(max(1, int(round(a * scale))) for a in self.at), self.levels, self.steps,
-                              self.lr_translation, self.lr_rotation)
+        return replace(self, at=tuple(max(1, int(round(a * scale))) for a in self.at))
 
 
 def level_size(width: int, height: int, level: int) -> tuple[int, int]:
     """(w, h) of a tracking level: the training size divided by ``level``, at least 8 pixels."""
     return max(8, width // level), max(8, height // level)
+
+
+def level_inputs(graph, images: Tensor, attention: Tensor | None, frames: Sequence[int], level: int):
+    """(targets, maps, intrinsics) of one tracking level, each a dict frame -> tensor: the image [h, w, 3], M_bg
+    [h, w] (maps is None without ``attention``) and K [3, 3], at ``level_size`` of the graph's training size."""
+    width, height = graph.width, graph.height
+    w, h = level_size(width, height, level)
+    targets = {f: fit_image(images[f], h, w) for f in frames}  # [h, w, 3] each
+    maps = ({f: fit_image(attention[f][..., None], h, w)[..., 0] for f in frames}
+            if attention is not None else None)
+    intrinsics = {}  # frame -> [3, 3] at this level
+    for f in frames:
+        k = graph.K[min(f, graph.K.shape[0] - 1)]
+        k_level = scale_intrinsics(k.detach().cpu().numpy(), (width, height), (w, h))
+        intrinsics[f] = torch.as_tensor(k_level, dtype=k.dtype, device=k.device)
+    return targets, maps, intrinsics
+
+
+def frame_loss(graph, frame: int, target: Tensor, attention: Tensor | None, K: Tensor, ssim_weight: float = 0.2,
+               lambda_sem: float = 0.8, delta: float = 1e-6) -> Tensor:
+    """A tracking step's loss of one frame rendered through its current camera at ``target``'s size: L_photo,
+    plus Eq. 3 with ``attention`` (M_bg) when given. target [h, w, 3]; attention [h, w]; K [3, 3] at that size."""
+    h, w = target.shape[:2]
+    out = graph.render(frame, K=K, width=w, height=h)
+    loss = photometric_loss(out.color, target, ssim_weight if min(w, h) >= 11 else 0.0)
+    if attention is not None:
+        loss = loss + semantic_attention_loss(out.color, target, attention, lambda_sem, delta)
+    return loss
 
 
 def track_cameras(graph, images: Tensor, frames: Sequence[int], config: TrackingConfig, extent: float, *,
@@ -69,7 +101,6 @@ def track_cameras(graph, images: Tensor, frames: Sequence[int], config: Tracking
     before the round and None is returned (the round can be run again from the start, e.g. after a resume).
     The caller freezes the Gaussians (``requires_grad`` False); only ``omega`` and ``tau`` get gradients here."""
     cam = graph.camera
-    width, height = graph.width, graph.height
     params = [cam.omega, cam.tau]
     before = [p.detach().clone() for p in params]
     for p in params:
@@ -80,16 +111,9 @@ def track_cameras(graph, images: Tensor, frames: Sequence[int], config: Tracking
     for li, level in enumerate(config.levels):
         factor = 0.5 ** li
         opt.param_groups[0]["lr"] = config.lr_rotation * factor
+        cam.omega.requires_grad_(li >= config.rotation_from)  # a centre-only level leaves omega without a gradient
         opt.param_groups[1]["lr"] = config.lr_translation * extent * factor
-        w, h = level_size(width, height, level)
-        targets = {f: fit_image(images[f], h, w) for f in frames}  # [h, w, 3] each
-        maps = ({f: fit_image(attention[f][..., None], h, w)[..., 0] for f in frames}
-                if attention is not None else None)
-        intrinsics = {}  # frame -> [3, 3] at this level
-        for f in frames:
-            k = graph.K[min(f, graph.K.shape[0] - 1)]
-            k_level = scale_intrinsics(k.detach().cpu().numpy(), (width, height), (w, h))
-            intrinsics[f] = torch.as_tensor(k_level, dtype=k.dtype, device=k.device)
+        targets, maps, intrinsics = level_inputs(graph, images, attention, frames, level)
         first = last = 0.0
         for step in range(config.steps):
             if should_stop is not None and should_stop():
@@ -101,10 +125,8 @@ def track_cameras(graph, images: Tensor, frames: Sequence[int], config: Tracking
             opt.zero_grad(set_to_none=True)
             total = 0.0
             for f in frames:
-                out = graph.render(f, K=intrinsics[f], width=w, height=h)
-                loss = photometric_loss(out.color, targets[f], ssim_weight if min(w, h) >= 11 else 0.0)
-                if maps is not None:
-                    loss = loss + semantic_attention_loss(out.color, targets[f], maps[f], lambda_sem, delta)
+                loss = frame_loss(graph, f, targets[f], None if maps is None else maps[f], intrinsics[f],
+                                  ssim_weight, lambda_sem, delta)
                 loss.backward()
                 total += float(loss.detach())
             opt.step()
