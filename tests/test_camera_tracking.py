@@ -94,6 +94,7 @@ def test_centre_only_levels_leave_the_rotations_alone(bundle):
     omega0 = g.camera.omega.detach().clone()
     track_cameras(g, images, [2, 5], TrackingConfig(levels=(4, 2), steps=5, rotation_from=2), scene_extent(g))
     assert torch.equal(g.camera.omega.detach(), omega0)  # no level turned a camera
+    assert g.camera.omega.requires_grad  # trainable at the end, as the round makes it at the start
     assert float(g.camera.tau[2].detach().norm()) < 0.39  # the centres moved (from 0.39 m off)
     g, images = _displaced(bundle)
     track_cameras(g, images, [2, 5], TrackingConfig(levels=(4, 2), steps=5, rotation_from=1), scene_extent(g))

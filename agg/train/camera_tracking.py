@@ -135,4 +135,5 @@ def track_cameras(graph, images: Tensor, frames: Sequence[int], config: Tracking
             last = mean
         report["levels"].append({"level": level, "loss_first": first, "loss_last": last})
     opt.zero_grad(set_to_none=True)
+    cam.omega.requires_grad_(True)  # trainable at the end, as at the start, whatever rotation_from did
     return report
