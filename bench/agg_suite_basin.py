@@ -36,7 +36,7 @@ import numpy as np
 import torch
 
 from agg_suite import probe_config, synth_bundle  # bench/ is the script's folder
-from agg_suite_curve import add_scene_args, reconstruct_with, suite_runs
+from agg_suite_curve import add_scene_args, reconstruct_until, suite_runs
 from agg_suite_frames import camera_error
 
 POSES = ("now", "gt", "gt_rotation", "gt_centre")
@@ -126,17 +126,16 @@ def watch(bundle_path: Path, scene_dir: Path, cfg, ablate: str, cameras: list[in
           out_path: Path, save: bool) -> None:
     from agg.io.bundle import SceneBundle
     from agg.train.camera_tracking import TrackingConfig
-    from agg.train.trainer import Cancelled, Trainer
+    from agg.train.trainer import Trainer
 
     gt = np.asarray(SceneBundle.load(bundle_path).gt.world_from_camera, np.float64)  # [T, 4, 4]
-    done = [0]
     out_path.parent.mkdir(parents=True, exist_ok=True)
     fh = out_path.open("w")
 
     class Watched(Trainer):
         def step(self) -> dict:
             row = super().step()
-            it = done[0] = row["iteration"]
+            it = row["iteration"]
             if it in at:
                 tracking = self.tracking or TrackingConfig()
                 attention = self.data.m_bg if self.cfg.semantic else None
@@ -150,9 +149,7 @@ def watch(bundle_path: Path, scene_dir: Path, cfg, ablate: str, cameras: list[in
             return row
 
     try:
-        reconstruct_with(Watched, bundle_path, scene_dir, cfg, ablate, should_stop=lambda: done[0] >= max(at))
-    except Cancelled:
-        pass
+        reconstruct_until(Watched, bundle_path, scene_dir, cfg, ablate, max(at))
     finally:
         fh.close()
 

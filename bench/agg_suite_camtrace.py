@@ -22,24 +22,23 @@ import numpy as np
 import torch
 
 from agg_suite import probe_config, synth_bundle  # bench/ is the script's folder
-from agg_suite_curve import add_scene_args, reconstruct_with, suite_runs
+from agg_suite_curve import add_scene_args, reconstruct_until, suite_runs
 from agg_suite_frames import camera_error
 
 
 def trace(bundle_path: Path, scene_dir: Path, cfg, ablate: str, cameras: list[int], until: int | None, every: int,
           out_path: Path) -> None:
     from agg.io.bundle import SceneBundle
-    from agg.train.trainer import Cancelled, Trainer
+    from agg.train.trainer import Trainer
 
     gt = np.asarray(SceneBundle.load(bundle_path).gt.world_from_camera, np.float64)  # [T, 4, 4]
-    done = [0]
     out_path.parent.mkdir(parents=True, exist_ok=True)
     fh = out_path.open("w")
 
     class Watched(Trainer):
         def step(self) -> dict:
             row = super().step()
-            it = done[0] = row["iteration"]
+            it = row["iteration"]
             rounds = self.tracking.at if self.tracking is not None else ()
             if it % every and not any(abs(it - a) <= 1 for a in rounds) and it != until:
                 return row
@@ -54,10 +53,7 @@ def trace(bundle_path: Path, scene_dir: Path, cfg, ablate: str, cameras: list[in
             return row
 
     try:
-        reconstruct_with(Watched, bundle_path, scene_dir, cfg, ablate,
-                         should_stop=lambda: until is not None and done[0] >= until)
-    except Cancelled:
-        pass
+        reconstruct_until(Watched, bundle_path, scene_dir, cfg, ablate, until)
     finally:
         fh.close()
 

@@ -79,6 +79,25 @@ def reconstruct_with(trainer_cls, bundle_path: Path, scene_dir: Path, cfg, ablat
         rec.Trainer = original
 
 
+def reconstruct_until(trainer_cls, bundle_path: Path, scene_dir: Path, cfg, ablate: str, until: int | None) -> None:
+    """``reconstruct_with``, stopped as a cancelled job stops (checkpoint written) once the trainer has taken
+    ``until`` steps; ``None`` runs to the end."""
+    from agg.train.trainer import Cancelled
+
+    held: list = []
+
+    class Held(trainer_cls):  # the trainer ``reconstruct`` builds, kept for the stop test
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, **kwargs)
+            held.append(self)
+
+    try:
+        reconstruct_with(Held, bundle_path, scene_dir, cfg, ablate,
+                         should_stop=lambda: until is not None and bool(held) and held[-1].iteration >= until)
+    except Cancelled:
+        pass
+
+
 def add_scene_args(p: argparse.ArgumentParser, variants: str) -> None:
     """The arguments that pick a suite run to watch: the seed, variants, noise, preset, ``--set`` replacements and
     the bundle's size, as ``bench/agg_suite.py probe`` takes them."""

@@ -22,7 +22,7 @@ import json
 from pathlib import Path
 
 from agg_suite import probe_config, synth_bundle  # bench/ is the script's folder
-from agg_suite_curve import add_scene_args, reconstruct_with, suite_runs
+from agg_suite_curve import add_scene_args, reconstruct_until, suite_runs
 
 BETA1, BETA2 = 0.9, 0.999  # torch.optim.Adam's defaults, which the trainer uses
 
@@ -67,7 +67,7 @@ def phase_means(rows: list[dict]) -> list[dict]:
 
 def train_with_moments(bundle_path: Path, scene_dir: Path, cfg, ablate: str, until: int | None,
                        out_path: Path) -> list[dict]:
-    from agg.train.trainer import Cancelled, Trainer
+    from agg.train.trainer import Trainer
 
     rows: list[dict] = []
     out_path.parent.mkdir(parents=True, exist_ok=True)
@@ -83,13 +83,8 @@ def train_with_moments(bundle_path: Path, scene_dir: Path, cfg, ablate: str, unt
             fh.write(json.dumps(rows[-1]) + "\n")
             return row
 
-    def stop() -> bool:
-        return until is not None and bool(rows) and rows[-1]["iteration"] >= until
-
     try:
-        reconstruct_with(Watched, bundle_path, scene_dir, cfg, ablate, should_stop=stop)
-    except Cancelled:
-        pass
+        reconstruct_until(Watched, bundle_path, scene_dir, cfg, ablate, until)
     finally:
         fh.close()
     return rows

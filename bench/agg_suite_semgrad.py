@@ -33,7 +33,7 @@ from pathlib import Path
 import torch
 
 from agg_suite import probe_config, synth_bundle  # bench/ is the script's folder
-from agg_suite_curve import add_scene_args, reconstruct_with, suite_runs
+from agg_suite_curve import add_scene_args, reconstruct_until, suite_runs
 
 BETA2 = 0.999  # torch.optim.Adam's default, which the trainer uses
 STATS = ("cos", "ratio", "total_cos", "pre_cos")
@@ -76,19 +76,13 @@ def group_stats(opt, total: dict, photo: dict, means_only: bool) -> dict | None:
 def train_with_semgrad(bundle_path: Path, scene_dir: Path, cfg, ablate: str, until: int | None,
                        out_path: Path) -> list[dict]:
     from agg.train.losses import photometric_loss
-    from agg.train.trainer import Cancelled, Trainer
+    from agg.train.trainer import Trainer
 
     rows: list[dict] = []
-    done = [0]  # the iterations taken
     out_path.parent.mkdir(parents=True, exist_ok=True)
     fh = out_path.open("w")
 
     class Watched(Trainer):
-        def step(self) -> dict:
-            row = super().step()
-            done[0] = row["iteration"]
-            return row
-
         def forward_backward(self, frame: int, phase):
             loss, sem, out = super().forward_backward(frame, phase)
             if sem is None or not loss.requires_grad:
@@ -115,13 +109,8 @@ def train_with_semgrad(bundle_path: Path, scene_dir: Path, cfg, ablate: str, unt
             fh.write(json.dumps(row) + "\n")
             return loss, sem, out
 
-    def stop() -> bool:
-        return until is not None and done[0] >= until
-
     try:
-        reconstruct_with(Watched, bundle_path, scene_dir, cfg, ablate, should_stop=stop)
-    except Cancelled:
-        pass
+        reconstruct_until(Watched, bundle_path, scene_dir, cfg, ablate, until)
     finally:
         fh.close()
     return rows
