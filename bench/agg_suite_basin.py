@@ -76,12 +76,12 @@ def read_basin(g, images, attention, cfg, tracking, extent: float, gt: np.ndarra
         for c in cameras:
             poses = {"now": now[c], "gt": gt[c], "gt_rotation": pose(gt[c][:3, :3], now[c][:3, 3]),
                      "gt_centre": pose(now[c][:3, :3], gt[c][:3, 3])}
+            inputs = [level_inputs(g, images, attention, [c], level) for level in tracking.levels]
             losses = {}
             for name in POSES:
                 set_pose(cam, c, poses[name])
                 row = []
-                for level in tracking.levels:
-                    targets, maps, ks = level_inputs(g, images, attention, [c], level)
+                for targets, maps, ks in inputs:
                     with torch.no_grad():
                         row.append(float(frame_loss(g, c, targets[c], None if maps is None else maps[c], ks[c],
                                                     **kw)))
