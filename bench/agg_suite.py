@@ -1,7 +1,7 @@
 """AGG against the fixed-topology baseline and each ablation on the synthetic suite, plus KITTI and the preset trade.
 
     python bench/agg_suite.py synth [--seeds 0,1,2] [--noise 0,0.25,0.5,1.0] [--variants agg,baseline,...]
-    python bench/agg_suite.py kitti [--data ../shared/data/kitti06_51] [--preset fast]
+    python bench/agg_suite.py kitti [--data ../shared/data/kitti06_51] [--preset fast] [--set tracking.NAME=V]
     python bench/agg_suite.py presets [--presets fast,balanced] [--seed 0]
     python bench/agg_suite.py real --data BUNDLE [--tag NAME] [--variants agg,no-tick-tock,...] [--set seed=1]
     python bench/agg_suite.py probe --set iterations=4000 [--set lr.agent_boost=1] [--set tracking=none] [--seeds 0]
@@ -448,9 +448,13 @@ def run_rescore(args) -> None:
 
 
 def run_kitti(args) -> None:
+    """kitti06_51 from its frames (priors estimated in the run), with its estimated poses and with ground truth;
+    ``--set`` options as for ``probe`` name the records after them (the report's table reads ``--work``'s
+    top-level records, so keep option runs in a work folder of their own)."""
+    cfg, tag = probe_config(args.preset, args.set) if args.set else (args.preset, "")
     for gt in (False, True):
-        _run(args, f"kitti_{args.preset}_{'gt' if gt else 'est'}", args.data, args.preset,
-             {"kind": "kitti", "gt_poses": gt}, gt_poses=gt)
+        _run(args, f"kitti_{args.preset}_{'gt' if gt else 'est'}" + (f"_{tag}" if tag else ""), args.data, cfg,
+             {"kind": "kitti", "gt_poses": gt, "set": args.set}, gt_poses=gt)
 
 
 def run_real(args) -> None:
