@@ -198,18 +198,33 @@ def camera_scores(graph, scene_dir: Path, bundle_path: Path) -> dict:
     """Camera-centre error against ground truth (metres) of the priors and of the refined cameras, over the
     training frames: mean, median, max, and ``sim3_mean_m`` after the Sim(3) alignment of the training cameras
     to ground truth (what is left once a drift of the whole trajectory and map together is taken out), whose scale
-    (ground truth per scene unit) is ``sim3_scale``."""
-    from agg.eval.trajectory import align_sim3
+    (ground truth per scene unit) is ``sim3_scale``; ``sim3_max_m`` and ``sim3_rotation_deg`` (the mean angle
+    between aligned and true orientations) go with it."""
+    from agg.eval.trajectory import align_sim3, rotation_angle_deg
 
     prior, refined, gt = _training_cameras(graph, scene_dir, bundle_path)
     out = {}
     for name, p in (("prior", prior), ("refined", refined)):
-        e = np.linalg.norm(p[:, :3, 3] - gt[:, :3, 3], axis=1)
+        e = np.linalg.norm(p[:, :3, 3] - gt[:, :3, 3], axis=1)  # [F]
         sim = align_sim3(p, gt)
-        ea = np.linalg.norm(sim.apply_to_poses(p)[:, :3, 3] - gt[:, :3, 3], axis=1)
+        aligned = sim.apply_to_poses(p)  # [F, 4, 4]
+        ea = np.linalg.norm(aligned[:, :3, 3] - gt[:, :3, 3], axis=1)  # [F]
+        turn = rotation_angle_deg(aligned[:, :3, :3] @ np.swapaxes(gt[:, :3, :3], 1, 2))  # [F]
         out[name] = {"mean_m": float(e.mean()), "median_m": float(np.median(e)), "max_m": float(e.max()),
-                     "sim3_mean_m": float(ea.mean()), "sim3_scale": float(sim.scale)}
+                     "sim3_mean_m": float(ea.mean()), "sim3_max_m": float(ea.max()),
+                     "sim3_rotation_deg": float(turn.mean()), "sim3_scale": float(sim.scale)}
     return out
+
+
+def trained_bundle(scene_dir: Path) -> Path | None:
+    """The bundle a scene trained on, as ``reconstruct`` keeps it in the scene (the ground-truth-pose copy for a
+    ``--gt-poses`` run), when it holds ground-truth cameras; None otherwise."""
+    from agg.io.bundle import SceneBundle
+
+    for name in ("bundle_gt_poses", "bundle"):
+        if (scene_dir / name).is_dir():
+            return scene_dir / name if SceneBundle.load(scene_dir / name).gt is not None else None
+    return None
 
 
 def region_scores(scene_dir: Path) -> dict | None:
@@ -333,6 +348,8 @@ def _run(args, name: str, input_path, preset, row: dict, **kwargs) -> dict | Non
         row["agent_poses"] = agent_pose_scores(graph, input_path)
     elif row["kind"] == "real":
         row["prior_masks"] = prior_mask_scores(work / "scenes" / name)
+    if row["kind"] in ("kitti", "real") and (bundle := trained_bundle(work / "scenes" / name)) is not None:
+        row["cameras"] = camera_scores(load_graph(work / "scenes" / name), work / "scenes" / name, bundle)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(row, indent=1))
     print(name, f"{row['wall_s']} s", "PSNR", row["metrics"]["psnr"], "agents", row["metrics"]["psnr_agents"],
@@ -421,7 +438,7 @@ def run_probe(args) -> None:
 
 def run_rescore(args) -> None:
     """Add the region, agent-pose and topology scores to finished records whose scene directory is still on
-    disk."""
+    disk, and the camera scores to KITTI and real-clip records whose bundle has ground-truth cameras."""
     work = Path(args.work)
     for path in sorted((work / "runs").glob("*.json")):
         row = json.loads(path.read_text())
@@ -430,6 +447,10 @@ def run_rescore(args) -> None:
             row["prior_masks"] = prior_mask_scores(scene)
             path.write_text(json.dumps(row, indent=1))
             print(path.stem, row["prior_masks"], flush=True)
+        if row["kind"] in ("kitti", "real") and (scene / "model.pt").is_file() and (b := trained_bundle(scene)):
+            row["cameras"] = camera_scores(load_graph(scene), scene, b)
+            path.write_text(json.dumps(row, indent=1))
+            print(path.stem, {k: round(v["sim3_mean_m"], 3) for k, v in row["cameras"].items()}, flush=True)
         if row["kind"] in SYNTHETIC_KINDS and (scene / "metrics.json").is_file():
             if json.loads((scene / "metrics.json").read_text())["psnr"] != row["metrics"]["psnr"]:
                 print(path.stem, "skipped: the scene on disk is not the one this record scored", flush=True)
