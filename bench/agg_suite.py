@@ -199,8 +199,9 @@ def camera_scores(graph, scene_dir: Path, bundle_path: Path) -> dict:
     training frames: mean, median, max, and ``sim3_mean_m`` after the Sim(3) alignment of the training cameras
     to ground truth (what is left once a drift of the whole trajectory and map together is taken out), whose scale
     (ground truth per scene unit) is ``sim3_scale``; ``sim3_max_m`` and ``sim3_rotation_deg`` (the mean angle
-    between aligned and true orientations) go with it."""
-    from agg.eval.trajectory import align_sim3, rotation_angle_deg
+    between aligned and true orientations, from |R - R_gt|_F = 2 sqrt(2) sin(angle / 2), which stays exact near
+    zero where the trace's arccos does not) go with it."""
+    from agg.eval.trajectory import align_sim3
 
     prior, refined, gt = _training_cameras(graph, scene_dir, bundle_path)
     out = {}
@@ -209,7 +210,8 @@ def camera_scores(graph, scene_dir: Path, bundle_path: Path) -> dict:
         sim = align_sim3(p, gt)
         aligned = sim.apply_to_poses(p)  # [F, 4, 4]
         ea = np.linalg.norm(aligned[:, :3, 3] - gt[:, :3, 3], axis=1)  # [F]
-        turn = rotation_angle_deg(aligned[:, :3, :3] @ np.swapaxes(gt[:, :3, :3], 1, 2))  # [F]
+        chord = np.linalg.norm(aligned[:, :3, :3] - gt[:, :3, :3], axis=(1, 2))  # [F]
+        turn = np.degrees(2.0 * np.arcsin(np.clip(chord / (2.0 * np.sqrt(2.0)), 0.0, 1.0)))  # [F]
         out[name] = {"mean_m": float(e.mean()), "median_m": float(np.median(e)), "max_m": float(e.max()),
                      "sim3_mean_m": float(ea.mean()), "sim3_max_m": float(ea.max()),
                      "sim3_rotation_deg": float(turn.mean()), "sim3_scale": float(sim.scale)}
