@@ -199,33 +199,32 @@ def camera_scores(graph, scene_dir: Path, bundle_path: Path) -> dict:
     training frames: mean, median, max, and ``sim3_mean_m`` after the Sim(3) alignment of the training cameras
     to ground truth (what is left once a drift of the whole trajectory and map together is taken out), whose scale
     (ground truth per scene unit) is ``sim3_scale``; ``sim3_max_m`` and ``sim3_rotation_deg`` (the mean angle
-    between aligned and true orientations, from |R - R_gt|_F = 2 sqrt(2) sin(angle / 2), which stays exact near
-    zero where the trace's arccos does not) go with it."""
-    from agg.eval.trajectory import align_sim3
+    between aligned and true orientations, ``evaluate_trajectory``'s ``ate_rot_mean_deg``) go with it."""
+    from agg.eval.trajectory import evaluate_trajectory
 
     prior, refined, gt = _training_cameras(graph, scene_dir, bundle_path)
     out = {}
     for name, p in (("prior", prior), ("refined", refined)):
         e = np.linalg.norm(p[:, :3, 3] - gt[:, :3, 3], axis=1)  # [F]
-        sim = align_sim3(p, gt)
-        aligned = sim.apply_to_poses(p)  # [F, 4, 4]
-        ea = np.linalg.norm(aligned[:, :3, 3] - gt[:, :3, 3], axis=1)  # [F]
-        chord = np.linalg.norm(aligned[:, :3, :3] - gt[:, :3, :3], axis=(1, 2))  # [F]
-        turn = np.degrees(2.0 * np.arcsin(np.clip(chord / (2.0 * np.sqrt(2.0)), 0.0, 1.0)))  # [F]
+        m = evaluate_trajectory(p, gt)
+        ea = np.linalg.norm(m.alignment.apply_to_poses(p)[:, :3, 3] - gt[:, :3, 3], axis=1)  # [F]
         out[name] = {"mean_m": float(e.mean()), "median_m": float(np.median(e)), "max_m": float(e.max()),
                      "sim3_mean_m": float(ea.mean()), "sim3_max_m": float(ea.max()),
-                     "sim3_rotation_deg": float(turn.mean()), "sim3_scale": float(sim.scale)}
+                     "sim3_rotation_deg": m.ate_rot_mean_deg, "sim3_scale": float(m.alignment.scale)}
     return out
 
 
-def trained_bundle(scene_dir: Path) -> Path | None:
-    """The bundle a scene trained on, as ``reconstruct`` keeps it in the scene (the ground-truth-pose copy for a
-    ``--gt-poses`` run), when it holds ground-truth cameras; None otherwise."""
+def clip_camera_scores(scene_dir: Path) -> dict | None:
+    """``camera_scores`` of a KITTI or real-clip scene against the bundle it trained on, as ``reconstruct`` keeps it
+    in the scene (the ground-truth-pose copy for a ``--gt-poses`` run); None when that bundle has no ground-truth
+    cameras."""
     from agg.io.bundle import SceneBundle
 
     for name in ("bundle_gt_poses", "bundle"):
         if (scene_dir / name).is_dir():
-            return scene_dir / name if SceneBundle.load(scene_dir / name).gt is not None else None
+            if SceneBundle.load(scene_dir / name).gt is None:
+                return None
+            return camera_scores(load_graph(scene_dir), scene_dir, scene_dir / name)
     return None
 
 
@@ -350,8 +349,8 @@ def _run(args, name: str, input_path, preset, row: dict, **kwargs) -> dict | Non
         row["agent_poses"] = agent_pose_scores(graph, input_path)
     elif row["kind"] == "real":
         row["prior_masks"] = prior_mask_scores(work / "scenes" / name)
-    if row["kind"] in ("kitti", "real") and (bundle := trained_bundle(work / "scenes" / name)) is not None:
-        row["cameras"] = camera_scores(load_graph(work / "scenes" / name), work / "scenes" / name, bundle)
+    if row["kind"] in ("kitti", "real") and (cameras := clip_camera_scores(work / "scenes" / name)) is not None:
+        row["cameras"] = cameras
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(row, indent=1))
     print(name, f"{row['wall_s']} s", "PSNR", row["metrics"]["psnr"], "agents", row["metrics"]["psnr_agents"],
@@ -449,8 +448,9 @@ def run_rescore(args) -> None:
             row["prior_masks"] = prior_mask_scores(scene)
             path.write_text(json.dumps(row, indent=1))
             print(path.stem, row["prior_masks"], flush=True)
-        if row["kind"] in ("kitti", "real") and (scene / "model.pt").is_file() and (b := trained_bundle(scene)):
-            row["cameras"] = camera_scores(load_graph(scene), scene, b)
+        if row["kind"] in ("kitti", "real") and (scene / "model.pt").is_file() and (
+                cameras := clip_camera_scores(scene)) is not None:
+            row["cameras"] = cameras
             path.write_text(json.dumps(row, indent=1))
             print(path.stem, {k: round(v["sim3_mean_m"], 3) for k, v in row["cameras"].items()}, flush=True)
         if row["kind"] in SYNTHETIC_KINDS and (scene / "metrics.json").is_file():

@@ -98,9 +98,12 @@ def _as44(a: np.ndarray) -> np.ndarray:
 
 
 def rotation_angle_deg(r: np.ndarray) -> np.ndarray:
-    """Angle (deg) of rotation matrices [..., 3, 3]."""
-    tr = np.trace(r, axis1=-2, axis2=-1)
-    return np.degrees(np.arccos(np.clip((tr - 1.0) / 2.0, -1.0, 1.0)))
+    """Angle (deg) of rotation matrices [..., 3, 3]: atan2(sin, cos) with |R - R^T|_F = 2 sqrt(2) sin(angle) and
+    trace = 1 + 2 cos(angle), exact at every angle (the trace's arccos alone loses about 0.01 deg near zero)."""
+    r = np.asarray(r, float)
+    cos = (np.trace(r, axis1=-2, axis2=-1) - 1.0) / 2.0  # [...]
+    sin = np.linalg.norm(r - np.swapaxes(r, -1, -2), axis=(-2, -1)) / (2.0 * np.sqrt(2.0))  # [...]
+    return np.degrees(np.arctan2(sin, cos))
 
 
 def _project_so3(c: np.ndarray) -> np.ndarray:
