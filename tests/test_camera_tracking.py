@@ -101,6 +101,28 @@ def test_centre_only_levels_leave_the_rotations_alone(bundle):
     assert not torch.equal(g.camera.omega.detach()[5], omega0[5])  # the second level turned frame 5
 
 
+def test_the_gate_keeps_exact_cameras_exact_and_still_pulls_displaced_ones_back(bundle):
+    """``gate``: a frame keeps the round's pose only where its loss at the training size went down. Frames 3 and
+    4 start exact: an ungated round moves them (Adam's first steps have the rate's size whatever the gradient's),
+    the gated round puts them back to exactly zero. Displaced frames 2 and 5 keep their correction."""
+    frames = [2, 3, 4, 5]
+    g, images = _displaced(bundle)
+    err0 = g.camera.tau[[2, 5]].detach().norm(dim=-1)  # [2]
+    track_cameras(g, images, frames, TrackingConfig(), scene_extent(g))
+    assert (g.camera.tau[[3, 4]].detach().norm(dim=-1) > 0.03).all()  # measured 0.094, 0.068 m
+    ungated = g.camera.tau[[2, 5]].detach().clone()
+    g, images = _displaced(bundle)
+    rep = track_cameras(g, images, frames, TrackingConfig(gate=True), scene_extent(g))
+    tau, omega = g.camera.tau.detach(), g.camera.omega.detach()
+    assert torch.equal(tau[[3, 4]], torch.zeros(2, 3)) and torch.equal(omega[[3, 4]], torch.zeros(2, 3))
+    assert torch.equal(tau[[2, 5]], ungated)  # the same round, kept where it paid
+    assert (tau[[2, 5]].norm(dim=-1) < 0.4 * err0).all()
+    gate = rep["gate"]
+    assert (gate["frames_kept"], gate["frames"]) == (2, 4)
+    assert gate["loss_after"] < gate["loss_before"]
+    assert g.camera.omega.requires_grad and g.camera.tau.requires_grad
+
+
 def test_a_tracking_milestone_in_a_tock_waits_for_the_next_tick(bundle):
     # 30 iterations: warm-up 5, phases of 1 (tick at odd iterations from 5), joint from 20
     tracking = TrackingConfig(at=(6_000, 30_000 * 25 // 30), levels=(4,), steps=2)

@@ -22,6 +22,9 @@ against its map:
 - ``rotation_from`` (default 0) makes the levels before it move the centres alone: a sideways centre error looks
   much like a turn to the photometric loss, and a round that may turn from its first step can take it up as yaw
   (docs/TRAINING.md, "Yaw for a sideways error");
+- ``gate`` (off by default) keeps a frame's new pose only where the round lowered its loss at the training size,
+  and puts every other frame back: Adam's first steps move a camera that is already right by about the rate, so
+  from good priors an ungated round moves the cameras away from the truth (docs/TRAINING.md, "The gate");
 - frame 0 stays fixed (the gauge) and held-out frames are never rendered, so their corrections are untouched;
 - a cancellation between two steps puts the corrections back as they were before the round, so a resumed run
   tracks the round again from the same state.
@@ -53,6 +56,8 @@ class TrackingConfig:
     lr_rotation: float = 2e-3  # radians per step at the coarsest level
     rotation_from: int = 0  # the first level (index into levels) whose steps turn the cameras: the levels
     # before it move the centres alone (0: every level turns them)
+    gate: bool = False  # a frame keeps the round's pose only if its loss at the training size went down; else it
+    # goes back to the pose it had before the round
 
     def scaled(self, scale: float) -> "TrackingConfig":
         return replace(self, at=tuple(max(1, int(round(a * scale))) for a in self.at))
@@ -91,6 +96,16 @@ def frame_loss(graph, frame: int, target: Tensor, attention: Tensor | None, K: T
     return loss
 
 
+def full_size_losses(graph, frames: Sequence[int], inputs, ssim_weight: float, lambda_sem: float,
+                     delta: float) -> list[float]:
+    """Each frame's ``frame_loss`` [F] through its current camera, no gradient; ``inputs`` is ``level_inputs``'s
+    (targets, maps, intrinsics)."""
+    targets, maps, intrinsics = inputs
+    with torch.no_grad():
+        return [float(frame_loss(graph, f, targets[f], None if maps is None else maps[f], intrinsics[f],
+                                 ssim_weight, lambda_sem, delta)) for f in frames]
+
+
 def track_cameras(graph, images: Tensor, frames: Sequence[int], config: TrackingConfig, extent: float, *,
                   attention: Tensor | None = None, ssim_weight: float = 0.2, lambda_sem: float = 0.8,
                   delta: float = 1e-6, should_stop: Callable[[], bool] | None = None) -> dict | None:
@@ -108,6 +123,9 @@ def track_cameras(graph, images: Tensor, frames: Sequence[int], config: Tracking
     opt = torch.optim.Adam([{"params": [cam.omega], "lr": config.lr_rotation},
                             {"params": [cam.tau], "lr": config.lr_translation * extent}], eps=1e-15)
     report = {"levels": []}
+    if config.gate:
+        full = level_inputs(graph, images, attention, frames, 1)
+        loss_before = full_size_losses(graph, frames, full, ssim_weight, lambda_sem, delta)  # [F]
     for li, level in enumerate(config.levels):
         factor = 0.5 ** li
         opt.param_groups[0]["lr"] = config.lr_rotation * factor
@@ -135,5 +153,15 @@ def track_cameras(graph, images: Tensor, frames: Sequence[int], config: Tracking
             last = mean
         report["levels"].append({"level": level, "loss_first": first, "loss_last": last})
     opt.zero_grad(set_to_none=True)
+    if config.gate:
+        loss_after = full_size_losses(graph, frames, full, ssim_weight, lambda_sem, delta)  # [F]
+        worse = [i for i in range(len(frames)) if not loss_after[i] < loss_before[i]]
+        with torch.no_grad():
+            for p, b in zip(params, before):
+                p[[frames[i] for i in worse]] = b[[frames[i] for i in worse]]
+        kept = [min(a, b) for a, b in zip(loss_after, loss_before)]
+        report["gate"] = {"frames_kept": len(frames) - len(worse), "frames": len(frames),
+                          "loss_before": sum(loss_before) / max(len(frames), 1),
+                          "loss_after": sum(kept) / max(len(frames), 1)}
     cam.omega.requires_grad_(True)  # trainable at the end, as at the start, whatever rotation_from did
     return report
