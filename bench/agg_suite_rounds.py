@@ -1,0 +1,130 @@
+"""What each camera-tracking round does to the training cameras, against ground truth.
+
+    python bench/agg_suite_rounds.py SEED [--noise 1.0] [--preset fast] [--set NAME=VALUE ...] [--until N]
+    python bench/agg_suite_rounds.py --bundle BUNDLE --name NAME [--preset fast] [--set ...] [--until N]
+
+Trains the suite's synthetic bundle of SEED (or any BUNDLE that has ground-truth poses, e.g. kitti06_51's priors) as
+``bench/agg_suite.py probe`` / ``real`` would, AGG with every component, and stops after ``--until`` steps (default:
+just after the last tracking round). Before and after each round it reads the training cameras and prints their
+error after the Sim(3) alignment to ground truth (mean centre error in metres, mean rotation error in degrees), and
+how far the round moved them (median centre shift in metres, median turn in degrees). Written to
+WORK/rounds/NAME.json as well.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from agg_suite import probe_config, synth_bundle  # bench/ is the script's folder
+from agg_suite_curve import add_scene_args, reconstruct_until
+
+
+def cameras_now(trainer) -> np.ndarray:
+    """The training frames' refined camera-to-world poses [F, 4, 4] (float64)."""
+    with torch.no_grad():
+        cams = trainer.graph.camera.world_from_camera().numpy().astype(np.float64)  # [T, 4, 4]
+    return cams[list(trainer.data.train_frames)]
+
+
+def scores(cams: np.ndarray, gt: np.ndarray, metres_per_unit: float) -> dict:
+    """Sim(3)-aligned centre error (metres, mean and max) and rotation error (degrees) of ``cams`` [F, 4, 4]."""
+    from agg.eval.trajectory import evaluate_trajectory
+
+    m = evaluate_trajectory(cams, gt)
+    err = np.linalg.norm(m.alignment.apply_to_poses(cams)[:, :3, 3] - gt[:, :3, 3], axis=1)  # [F]
+    return {"sim3_mean_m": float(err.mean()), "sim3_max_m": float(err.max()),
+            "sim3_rotation_deg": float(m.ate_rot_mean_deg), "metres_per_unit": metres_per_unit}
+
+
+def moved(before: np.ndarray, after: np.ndarray, metres_per_unit: float) -> dict:
+    """Median centre shift (metres) and turn (degrees) from ``before`` to ``after`` [F, 4, 4]."""
+    from agg.eval.trajectory import rotation_angle_deg
+
+    shift = np.linalg.norm(after[:, :3, 3] - before[:, :3, 3], axis=1) * metres_per_unit  # [F]
+    turn = rotation_angle_deg(np.transpose(before[:, :3, :3], (0, 2, 1)) @ after[:, :3, :3])  # [F]
+    return {"shift_median_m": float(np.median(shift)), "shift_max_m": float(shift.max()),
+            "turn_median_deg": float(np.median(turn))}
+
+
+def full_size_losses(trainer) -> np.ndarray:
+    """Each training frame's tracking loss [F] at the training size, through its current camera."""
+    from agg.train.camera_tracking import full_size_losses, level_inputs
+
+    frames = list(trainer.data.train_frames)
+    attention = trainer.data.m_bg if trainer.cfg.semantic else None
+    inputs = level_inputs(trainer.graph, trainer.data.images, attention, frames, 1)
+    return np.array(full_size_losses(trainer.graph, frames, inputs, trainer.cfg.ssim_weight, trainer.cfg.lambda_sem,
+                                     trainer.cfg.delta))
+
+
+def watch(bundle_path: Path, scene_dir: Path, cfg, until: int | None, out_path: Path) -> list[dict]:
+    from agg.io.bundle import SceneBundle
+    from agg.train.trainer import Trainer
+
+    gt_all = np.asarray(SceneBundle.load(bundle_path).gt.world_from_camera, np.float64)  # [T, 4, 4]
+    rows: list[dict] = []
+
+    class Watched(Trainer):
+        def _track_if_due(self) -> bool:
+            gt = gt_all[list(self.data.train_frames)]
+            n = len(self.tracking_log)
+            before = cameras_now(self)
+            due = self.tracking is not None and len(self.tracking.at) > self.tracked and \
+                self.iteration >= self.tracking.at[self.tracked]
+            loss0 = full_size_losses(self) if due else None
+            ok = super()._track_if_due()
+            if len(self.tracking_log) > n:
+                after = cameras_now(self)
+                loss1 = full_size_losses(self)
+                better = loss1 < loss0  # [F]
+                gated = np.where(better[:, None, None], after, before)  # [F, 4, 4]
+                mpu = self.metric.metres_per_unit
+                row = {"iteration": self.iteration, "before": scores(before, gt, mpu),
+                       "after": scores(after, gt, mpu), "moved": moved(before, after, mpu),
+                       "full_size_loss": [float(loss0.mean()), float(loss1.mean())],
+                       "frames_better": int(better.sum()), "frames": int(len(better)),
+                       "gated": scores(gated, gt, mpu), "levels": self.tracking_log[-1]["levels"]}
+                rows.append(row)
+                print(f"  round at {row['iteration']}: {row['before']['sim3_mean_m']:.4f} m / "
+                      f"{row['before']['sim3_rotation_deg']:.3f} deg -> {row['after']['sim3_mean_m']:.4f} m / "
+                      f"{row['after']['sim3_rotation_deg']:.3f} deg; moved {row['moved']['shift_median_m']:.4f} m, "
+                      f"{row['moved']['turn_median_deg']:.3f} deg; full-size loss {loss0.mean():.4f} -> "
+                      f"{loss1.mean():.4f}, {row['frames_better']}/{row['frames']} frames better; gated "
+                      f"{row['gated']['sim3_mean_m']:.4f} m / {row['gated']['sim3_rotation_deg']:.3f} deg", flush=True)
+            return ok
+
+    reconstruct_until(Watched, bundle_path, scene_dir, cfg, "", until)
+    out_path.parent.mkdir(parents=True, exist_ok=True)
+    out_path.write_text(json.dumps(rows, indent=1) + "\n")
+    return rows
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_scene_args(p, "agg")
+    p.add_argument("--bundle", default=None, help="a bundle with ground-truth poses instead of the synthetic one")
+    p.add_argument("--name", default=None, help="the run's name with --bundle")
+    p.add_argument("--until", type=int, default=None)
+    args = p.parse_args(argv)
+    work = Path(args.work)
+    cfg, tag = probe_config(args.preset, args.set)
+    until = args.until
+    if until is None and cfg.tracking is not None:
+        until = cfg.tracking.scaled(cfg.scale).at[-1] + 1
+    if args.bundle:
+        bundle, name = Path(args.bundle), args.name or Path(args.bundle).name
+    else:
+        bundle = synth_bundle(work, args.seed, args.noise, args.frames, args.width, args.height)
+        name = f"rounds_s{args.seed}_n{args.noise:g}_{args.preset}"
+    name += f"_{tag}" if tag else ""
+    watch(bundle, work / "scenes" / name, cfg, until, work / "rounds" / f"{name}.json")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
