@@ -24,7 +24,7 @@ against its map:
   (docs/TRAINING.md, "Yaw for a sideways error");
 - ``gate`` (off by default) keeps a frame's new pose only where the round lowered its loss at the training size,
   and puts every other frame back: Adam's first steps move a camera that is already right by about the rate, so
-  from good priors an ungated round moves the cameras away from the truth (docs/TRAINING.md, "The gate");
+  from good priors an ungated round moves the cameras away from the truth (docs/TRAINING.md, "The tracking gate");
 - frame 0 stays fixed (the gauge) and held-out frames are never rendered, so their corrections are untouched;
 - a cancellation between two steps puts the corrections back as they were before the round, so a resumed run
   tracks the round again from the same state.
