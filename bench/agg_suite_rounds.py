@@ -51,7 +51,7 @@ def moved(before: np.ndarray, after: np.ndarray, metres_per_unit: float) -> dict
             "turn_median_deg": float(np.median(turn))}
 
 
-def full_size_losses(trainer) -> np.ndarray:
+def frame_losses(trainer) -> np.ndarray:
     """Each training frame's tracking loss [F] at the training size, through its current camera."""
     from agg.train.camera_tracking import full_size_losses, level_inputs
 
@@ -76,11 +76,11 @@ def watch(bundle_path: Path, scene_dir: Path, cfg, until: int | None, out_path: 
             before = cameras_now(self)
             due = self.tracking is not None and len(self.tracking.at) > self.tracked and \
                 self.iteration >= self.tracking.at[self.tracked]
-            loss0 = full_size_losses(self) if due else None
+            loss0 = frame_losses(self) if due else None
             ok = super()._track_if_due()
             if len(self.tracking_log) > n:
                 after = cameras_now(self)
-                loss1 = full_size_losses(self)
+                loss1 = frame_losses(self)
                 better = loss1 < loss0  # [F]
                 gated = np.where(better[:, None, None], after, before)  # [F, 4, 4]
                 mpu = self.metric.metres_per_unit
