@@ -155,12 +155,12 @@ def track_cameras(graph, images: Tensor, frames: Sequence[int], config: Tracking
     opt.zero_grad(set_to_none=True)
     if config.gate:
         loss_after = full_size_losses(graph, frames, full, ssim_weight, lambda_sem, delta)  # [F]
-        worse = [i for i in range(len(frames)) if not loss_after[i] < loss_before[i]]
+        back = [f for f, a, b in zip(frames, loss_after, loss_before) if not a < b]  # frames put back
         with torch.no_grad():
             for p, b in zip(params, before):
-                p[[frames[i] for i in worse]] = b[[frames[i] for i in worse]]
+                p[back] = b[back]
         kept = [min(a, b) for a, b in zip(loss_after, loss_before)]
-        report["gate"] = {"frames_kept": len(frames) - len(worse), "frames": len(frames),
+        report["gate"] = {"frames_kept": len(frames) - len(back), "frames": len(frames),
                           "loss_before": sum(loss_before) / max(len(frames), 1),
                           "loss_after": sum(kept) / max(len(frames), 1)}
     cam.omega.requires_grad_(True)  # trainable at the end, as at the start, whatever rotation_from did
