@@ -200,18 +200,24 @@ def camera_scores(graph, scene_dir: Path, bundle_path: Path) -> dict:
     to ground truth (what is left once a drift of the whole trajectory and map together is taken out), whose scale
     (ground truth per scene unit) is ``sim3_scale``; ``sim3_max_m`` and ``sim3_rotation_deg`` (the mean angle
     between aligned and true orientations, ``evaluate_trajectory``'s ``ate_rot_mean_deg``) go with it."""
-    from agg.eval.trajectory import evaluate_trajectory
-
     prior, refined, gt = _training_cameras(graph, scene_dir, bundle_path)
     out = {}
     for name, p in (("prior", prior), ("refined", refined)):
         e = np.linalg.norm(p[:, :3, 3] - gt[:, :3, 3], axis=1)  # [F]
-        m = evaluate_trajectory(p, gt)
-        ea = np.linalg.norm(m.alignment.apply_to_poses(p)[:, :3, 3] - gt[:, :3, 3], axis=1)  # [F]
         out[name] = {"mean_m": float(e.mean()), "median_m": float(np.median(e)), "max_m": float(e.max()),
-                     "sim3_mean_m": float(ea.mean()), "sim3_max_m": float(ea.max()),
-                     "sim3_rotation_deg": m.ate_rot_mean_deg, "sim3_scale": float(m.alignment.scale)}
+                     **sim3_scores(p, gt)}
     return out
+
+
+def sim3_scores(cams: np.ndarray, gt: np.ndarray) -> dict:
+    """Centre error (metres, mean and max), mean rotation error (degrees) and scale of camera-to-world poses
+    ``cams`` [F, 4, 4] after their Sim(3) alignment to ``gt`` [F, 4, 4]."""
+    from agg.eval.trajectory import evaluate_trajectory
+
+    m = evaluate_trajectory(cams, gt)
+    ea = np.linalg.norm(m.alignment.apply_to_poses(cams)[:, :3, 3] - gt[:, :3, 3], axis=1)  # [F]
+    return {"sim3_mean_m": float(ea.mean()), "sim3_max_m": float(ea.max()),
+            "sim3_rotation_deg": m.ate_rot_mean_deg, "sim3_scale": float(m.alignment.scale)}
 
 
 def clip_camera_scores(scene_dir: Path) -> dict | None:

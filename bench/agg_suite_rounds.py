@@ -20,25 +20,15 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from agg_suite import probe_config, synth_bundle  # bench/ is the script's folder
+from agg_suite import probe_config, sim3_scores, synth_bundle  # bench/ is the script's folder
 from agg_suite_curve import add_scene_args, reconstruct_until
 
 
-def cameras_now(trainer) -> np.ndarray:
-    """The training frames' refined camera-to-world poses [F, 4, 4] (float64)."""
+def cameras_now(graph, frames: list[int]) -> np.ndarray:
+    """The refined camera-to-world poses [F, 4, 4] (float64) of ``frames``."""
     with torch.no_grad():
-        cams = trainer.graph.camera.world_from_camera().numpy().astype(np.float64)  # [T, 4, 4]
-    return cams[list(trainer.data.train_frames)]
-
-
-def scores(cams: np.ndarray, gt: np.ndarray, metres_per_unit: float) -> dict:
-    """Sim(3)-aligned centre error (metres, mean and max) and rotation error (degrees) of ``cams`` [F, 4, 4]."""
-    from agg.eval.trajectory import evaluate_trajectory
-
-    m = evaluate_trajectory(cams, gt)
-    err = np.linalg.norm(m.alignment.apply_to_poses(cams)[:, :3, 3] - gt[:, :3, 3], axis=1)  # [F]
-    return {"sim3_mean_m": float(err.mean()), "sim3_max_m": float(err.max()),
-            "sim3_rotation_deg": float(m.ate_rot_mean_deg), "metres_per_unit": metres_per_unit}
+        cams = graph.camera.world_from_camera().numpy().astype(np.float64)  # [T, 4, 4]
+    return cams[frames]
 
 
 def moved(before: np.ndarray, after: np.ndarray, metres_per_unit: float) -> dict:
@@ -51,54 +41,59 @@ def moved(before: np.ndarray, after: np.ndarray, metres_per_unit: float) -> dict
             "turn_median_deg": float(np.median(turn))}
 
 
-def frame_losses(trainer) -> np.ndarray:
-    """Each training frame's tracking loss [F] at the training size, through its current camera."""
-    from agg.train.camera_tracking import full_size_losses, level_inputs
-
-    frames = list(trainer.data.train_frames)
-    attention = trainer.data.m_bg if trainer.cfg.semantic else None
-    inputs = level_inputs(trainer.graph, trainer.data.images, attention, frames, 1)
-    return np.array(full_size_losses(trainer.graph, frames, inputs, trainer.cfg.ssim_weight, trainer.cfg.lambda_sem,
-                                     trainer.cfg.delta))
-
-
 def watch(bundle_path: Path, scene_dir: Path, cfg, until: int | None, out_path: Path) -> list[dict]:
+    """Train with every tracking round read on either side: the trainer's ``track_cameras`` is wrapped for the run
+    (the round itself, and so the run, is unchanged)."""
+    import agg.train.trainer as trainer_module
     from agg.io.bundle import SceneBundle
-    from agg.train.trainer import Trainer
+    from agg.train.camera_tracking import full_size_losses, level_inputs
 
     gt_all = np.asarray(SceneBundle.load(bundle_path).gt.world_from_camera, np.float64)  # [T, 4, 4]
     rows: list[dict] = []
+    held: list = []
+    original = trainer_module.track_cameras
 
-    class Watched(Trainer):
-        def _track_if_due(self) -> bool:
-            gt = gt_all[list(self.data.train_frames)]
-            n = len(self.tracking_log)
-            before = cameras_now(self)
-            due = self.tracking is not None and len(self.tracking.at) > self.tracked and \
-                self.iteration >= self.tracking.at[self.tracked]
-            loss0 = frame_losses(self) if due else None
-            ok = super()._track_if_due()
-            if len(self.tracking_log) > n:
-                after = cameras_now(self)
-                loss1 = frame_losses(self)
-                better = loss1 < loss0  # [F]
-                gated = np.where(better[:, None, None], after, before)  # [F, 4, 4]
-                mpu = self.metric.metres_per_unit
-                row = {"iteration": self.iteration, "before": scores(before, gt, mpu),
-                       "after": scores(after, gt, mpu), "moved": moved(before, after, mpu),
-                       "full_size_loss": [float(loss0.mean()), float(loss1.mean())],
-                       "frames_better": int(better.sum()), "frames": int(len(better)),
-                       "gated": scores(gated, gt, mpu), "levels": self.tracking_log[-1]["levels"]}
-                rows.append(row)
-                print(f"  round at {row['iteration']}: {row['before']['sim3_mean_m']:.4f} m / "
-                      f"{row['before']['sim3_rotation_deg']:.3f} deg -> {row['after']['sim3_mean_m']:.4f} m / "
-                      f"{row['after']['sim3_rotation_deg']:.3f} deg; moved {row['moved']['shift_median_m']:.4f} m, "
-                      f"{row['moved']['turn_median_deg']:.3f} deg; full-size loss {loss0.mean():.4f} -> "
-                      f"{loss1.mean():.4f}, {row['frames_better']}/{row['frames']} frames better; gated "
-                      f"{row['gated']['sim3_mean_m']:.4f} m / {row['gated']['sim3_rotation_deg']:.3f} deg", flush=True)
-            return ok
+    class Watched(trainer_module.Trainer):  # kept for its iteration and metric scale
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, **kwargs)
+            held.append(self)
 
-    reconstruct_until(Watched, bundle_path, scene_dir, cfg, "", until)
+    def watched_round(graph, images, frames, config, extent, **kwargs):
+        frames = list(frames)
+        inputs = level_inputs(graph, images, kwargs.get("attention"), frames, 1)
+
+        def losses() -> np.ndarray:  # [F] each frame's tracking loss at the training size
+            return np.array(full_size_losses(graph, frames, inputs, kwargs["ssim_weight"], kwargs["lambda_sem"],
+                                             kwargs["delta"]))
+
+        before, loss0 = cameras_now(graph, frames), losses()
+        report = original(graph, images, frames, config, extent, **kwargs)
+        if report is None:
+            return None
+        after, loss1 = cameras_now(graph, frames), losses()
+        better = loss1 < loss0  # [F]
+        gated = np.where(better[:, None, None], after, before)  # [F, 4, 4]
+        gt = gt_all[frames]
+        mpu = held[-1].metric.metres_per_unit
+        row = {"iteration": held[-1].iteration, "before": {**sim3_scores(before, gt), "metres_per_unit": mpu},
+               "after": {**sim3_scores(after, gt), "metres_per_unit": mpu}, "moved": moved(before, after, mpu),
+               "full_size_loss": [float(loss0.mean()), float(loss1.mean())],
+               "frames_better": int(better.sum()), "frames": int(len(better)),
+               "gated": {**sim3_scores(gated, gt), "metres_per_unit": mpu}, "levels": report["levels"]}
+        rows.append(row)
+        print(f"  round at {row['iteration']}: {row['before']['sim3_mean_m']:.4f} m / "
+              f"{row['before']['sim3_rotation_deg']:.3f} deg -> {row['after']['sim3_mean_m']:.4f} m / "
+              f"{row['after']['sim3_rotation_deg']:.3f} deg; moved {row['moved']['shift_median_m']:.4f} m, "
+              f"{row['moved']['turn_median_deg']:.3f} deg; full-size loss {loss0.mean():.4f} -> "
+              f"{loss1.mean():.4f}, {row['frames_better']}/{row['frames']} frames better; gated "
+              f"{row['gated']['sim3_mean_m']:.4f} m / {row['gated']['sim3_rotation_deg']:.3f} deg", flush=True)
+        return report
+
+    trainer_module.track_cameras = watched_round
+    try:
+        reconstruct_until(Watched, bundle_path, scene_dir, cfg, "", until)
+    finally:
+        trainer_module.track_cameras = original
     out_path.parent.mkdir(parents=True, exist_ok=True)
     out_path.write_text(json.dumps(rows, indent=1) + "\n")
     return rows
