@@ -188,7 +188,15 @@ def _machines(runs: list[dict]) -> str:
     count: dict[str, int] = defaultdict(int)
     for r in runs:
         count[(r.get("machine") or {}).get("cpu", "not recorded")] += 1
-    return "Machines: " + ", ".join(f"{cpu} ({n} runs)" for cpu, n in sorted(count.items())) + "."
+    gated = [r for r in runs if _tracking_gate(r)]
+    gate = f" Tracking gate on in {len(gated)} of {len(runs)} runs." if gated else ""
+    return "Machines: " + ", ".join(f"{cpu} ({n} runs)" for cpu, n in sorted(count.items())) + "." + gate
+
+
+def _tracking_gate(r: dict) -> bool:
+    """Whether a run's camera-tracking rounds were gated (``TrackingConfig.gate``): its rounds' rows carry the
+    gate's report. A table whose runs differ in it compares two engines, so ``_machines`` counts them."""
+    return any("gate" in row for row in (r.get("summary") or {}).get("tracking") or [])
 
 
 def probe_table(runs: list[dict], title: str = "Probes: the same runs with training options replaced") -> list[str]:
