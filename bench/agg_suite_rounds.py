@@ -6,8 +6,9 @@
 Trains the suite's synthetic bundle of SEED (or any BUNDLE that has ground-truth poses, e.g. kitti06_51's priors) as
 ``bench/agg_suite.py probe`` / ``real`` would, AGG with every component, and stops after ``--until`` steps (default:
 just after the last tracking round). Before and after each round it reads the training cameras and prints their
-error after the Sim(3) alignment to ground truth (mean centre error in metres, mean rotation error in degrees), and
-how far the round moved them (median centre shift in metres, median turn in degrees). Written to
+error after the Sim(3) alignment to ground truth (mean centre error in metres, mean rotation error in degrees), how
+far the round moved them (median centre shift in metres, median turn in degrees), and what a gate that compares each
+frame's loss at the training size (``TrackingConfig.gate``), or at the round's finest level, would keep. Written to
 WORK/rounds/NAME.json as well.
 """
 
@@ -60,33 +61,40 @@ def watch(bundle_path: Path, scene_dir: Path, cfg, until: int | None, out_path: 
 
     def watched_round(graph, images, frames, config, extent, **kwargs):
         frames = list(frames)
-        inputs = level_inputs(graph, images, kwargs.get("attention"), frames, 1)
+        finest = config.levels[-1]  # the finest level the round optimises (1 where it reaches the training size)
+        inputs = {level: level_inputs(graph, images, kwargs.get("attention"), frames, level) for level in {1, finest}}
 
-        def losses() -> np.ndarray:  # [F] each frame's tracking loss at the training size
-            return np.array(full_size_losses(graph, frames, inputs, kwargs["ssim_weight"], kwargs["lambda_sem"],
-                                             kwargs["delta"]))
+        def losses(level: int) -> np.ndarray:  # [F] each frame's tracking loss at 1/level of the training size
+            return np.array(full_size_losses(graph, frames, inputs[level], kwargs["ssim_weight"],
+                                             kwargs["lambda_sem"], kwargs["delta"]))
 
-        before, loss0 = cameras_now(graph, frames), losses()
+        before, loss0, fine0 = cameras_now(graph, frames), losses(1), losses(finest)
         report = original(graph, images, frames, config, extent, **kwargs)
         if report is None:
             return None
-        after, loss1 = cameras_now(graph, frames), losses()
-        better = loss1 < loss0  # [F]
+        after, loss1, fine1 = cameras_now(graph, frames), losses(1), losses(finest)
+        better, fine_better = loss1 < loss0, fine1 < fine0  # [F] each
         gated = np.where(better[:, None, None], after, before)  # [F, 4, 4]
+        fine_gated = np.where(fine_better[:, None, None], after, before)  # [F, 4, 4]
         gt = gt_all[frames]
         mpu = held[-1].metric.metres_per_unit
         row = {"iteration": held[-1].iteration, "before": {**sim3_scores(before, gt), "metres_per_unit": mpu},
                "after": {**sim3_scores(after, gt), "metres_per_unit": mpu}, "moved": moved(before, after, mpu),
                "full_size_loss": [float(loss0.mean()), float(loss1.mean())],
                "frames_better": int(better.sum()), "frames": int(len(better)),
-               "gated": {**sim3_scores(gated, gt), "metres_per_unit": mpu}, "levels": report["levels"]}
+               "gated": {**sim3_scores(gated, gt), "metres_per_unit": mpu}, "levels": report["levels"],
+               "finest_level": finest, "finest_loss": [float(fine0.mean()), float(fine1.mean())],
+               "frames_better_finest": int(fine_better.sum()),
+               "gated_finest": {**sim3_scores(fine_gated, gt), "metres_per_unit": mpu}}
         rows.append(row)
         print(f"  round at {row['iteration']}: {row['before']['sim3_mean_m']:.4f} m / "
               f"{row['before']['sim3_rotation_deg']:.3f} deg -> {row['after']['sim3_mean_m']:.4f} m / "
               f"{row['after']['sim3_rotation_deg']:.3f} deg; moved {row['moved']['shift_median_m']:.4f} m, "
               f"{row['moved']['turn_median_deg']:.3f} deg; full-size loss {loss0.mean():.4f} -> "
               f"{loss1.mean():.4f}, {row['frames_better']}/{row['frames']} frames better; gated "
-              f"{row['gated']['sim3_mean_m']:.4f} m / {row['gated']['sim3_rotation_deg']:.3f} deg", flush=True)
+              f"{row['gated']['sim3_mean_m']:.4f} m / {row['gated']['sim3_rotation_deg']:.3f} deg; at level {finest} "
+              f"{row['frames_better_finest']} frames better, gated there {row['gated_finest']['sim3_mean_m']:.4f} m",
+              flush=True)
         return report
 
     trainer_module.track_cameras = watched_round
