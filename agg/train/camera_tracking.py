@@ -58,6 +58,8 @@ class TrackingConfig:
     # before it move the centres alone (0: every level turns them)
     gate: bool = False  # a frame keeps the round's pose only if its loss at the training size went down; else it
     # goes back to the pose it had before the round
+    render_full: bool = False  # a coarse level renders at the training size and area-averages the render to the
+    # level's size (the full-size render blurred, as the targets are) instead of splatting at the level's size
 
     def scaled(self, scale: float) -> "TrackingConfig":
         return replace(self, at=tuple(max(1, int(round(a * scale))) for a in self.at))
@@ -85,14 +87,17 @@ def level_inputs(graph, images: Tensor, attention: Tensor | None, frames: Sequen
 
 
 def frame_loss(graph, frame: int, target: Tensor, attention: Tensor | None, K: Tensor, ssim_weight: float = 0.2,
-               lambda_sem: float = 0.8, delta: float = 1e-6) -> Tensor:
+               lambda_sem: float = 0.8, delta: float = 1e-6, render_size: tuple[int, int] | None = None) -> Tensor:
     """A tracking step's loss of one frame rendered through its current camera at ``target``'s size: L_photo,
-    plus Eq. 3 with ``attention`` (M_bg) when given. target [h, w, 3]; attention [h, w]; K [3, 3] at that size."""
+    plus Eq. 3 with ``attention`` (M_bg) when given. target [h, w, 3]; attention [h, w]; K [3, 3] at the render's
+    size: ``target``'s, or ``render_size`` (w, h), whose render is area-averaged to ``target``'s size."""
     h, w = target.shape[:2]
-    out = graph.render(frame, K=K, width=w, height=h)
-    loss = photometric_loss(out.color, target, ssim_weight if min(w, h) >= 11 else 0.0)
+    rw, rh = render_size if render_size is not None else (w, h)
+    color = graph.render(frame, K=K, width=rw, height=rh).color  # [rh, rw, 3]
+    color = fit_image(color, h, w)  # [h, w, 3]
+    loss = photometric_loss(color, target, ssim_weight if min(w, h) >= 11 else 0.0)
     if attention is not None:
-        loss = loss + semantic_attention_loss(out.color, target, attention, lambda_sem, delta)
+        loss = loss + semantic_attention_loss(color, target, attention, lambda_sem, delta)
     return loss
 
 
@@ -132,6 +137,10 @@ def track_cameras(graph, images: Tensor, frames: Sequence[int], config: Tracking
         cam.omega.requires_grad_(li >= config.rotation_from)  # a centre-only level leaves omega without a gradient
         opt.param_groups[1]["lr"] = config.lr_translation * extent * factor
         targets, maps, intrinsics = level_inputs(graph, images, attention, frames, level)
+        render_size = None
+        if config.render_full and level_size(graph.width, graph.height, level) != (graph.width, graph.height):
+            render_size = (graph.width, graph.height)  # splat at the training size, compare blurred
+            intrinsics = level_inputs(graph, images, None, frames, 1)[2]  # frame -> [3, 3] at that size
         first = last = 0.0
         for step in range(config.steps):
             if should_stop is not None and should_stop():
@@ -144,7 +153,7 @@ def track_cameras(graph, images: Tensor, frames: Sequence[int], config: Tracking
             total = 0.0
             for f in frames:
                 loss = frame_loss(graph, f, targets[f], None if maps is None else maps[f], intrinsics[f],
-                                  ssim_weight, lambda_sem, delta)
+                                  ssim_weight, lambda_sem, delta, render_size)
                 loss.backward()
                 total += float(loss.detach())
             opt.step()
