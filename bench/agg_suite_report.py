@@ -188,15 +188,19 @@ def _machines(runs: list[dict]) -> str:
     count: dict[str, int] = defaultdict(int)
     for r in runs:
         count[(r.get("machine") or {}).get("cpu", "not recorded")] += 1
-    gated = [r for r in runs if _tracking_gate(r)]
-    gate = f" Tracking gate on in {len(gated)} of {len(runs)} runs." if gated else ""
-    return "Machines: " + ", ".join(f"{cpu} ({n} runs)" for cpu, n in sorted(count.items())) + "." + gate
+    options = ""
+    for key, what in (("gate", "the tracking gate"), ("render_full", "coarse tracking levels rendered at full size")):
+        n = sum(1 for r in runs if _tracking_option(r, key))
+        options += f" With {what}: {n} of {len(runs)} runs." if n else ""
+    return "Machines: " + ", ".join(f"{cpu} ({n} runs)" for cpu, n in sorted(count.items())) + "." + options
 
 
-def _tracking_gate(r: dict) -> bool:
-    """Whether a run's camera-tracking rounds were gated (``TrackingConfig.gate``): its rounds' rows carry the
-    gate's report. A table whose runs differ in it compares two engines, so ``_machines`` counts them."""
-    return any("gate" in row for row in (r.get("summary") or {}).get("tracking") or [])
+def _tracking_option(r: dict, key: str) -> bool:
+    """Whether a run's camera-tracking rounds ran with ``TrackingConfig.gate`` or ``render_full``: its rounds'
+    rows carry the key (``render_full`` from the forty-third session on), a probe's ``--set`` names it. A table
+    whose runs differ in one compares two engines, so ``_machines`` counts them."""
+    return (f"tracking.{key}=true" in (r.get("set") or [])
+            or any(key in row for row in (r.get("summary") or {}).get("tracking") or []))
 
 
 def probe_table(runs: list[dict], title: str = "Probes: the same runs with training options replaced") -> list[str]:

@@ -127,7 +127,7 @@ def track_cameras(graph, images: Tensor, frames: Sequence[int], config: Tracking
         p.requires_grad_(True)
     opt = torch.optim.Adam([{"params": [cam.omega], "lr": config.lr_rotation},
                             {"params": [cam.tau], "lr": config.lr_translation * extent}], eps=1e-15)
-    report = {"levels": []}
+    report = {"levels": [], **({"render_full": True} if config.render_full else {})}
     if config.gate:
         full = level_inputs(graph, images, attention, frames, 1)
         loss_before = full_size_losses(graph, frames, full, ssim_weight, lambda_sem, delta)  # [F]
