@@ -23,8 +23,13 @@ against its map:
   much like a turn to the photometric loss, and a round that may turn from its first step can take it up as yaw
   (docs/TRAINING.md, "Yaw for a sideways error");
 - ``gate`` (off by default) keeps a frame's new pose only where the round lowered its loss at the training size,
-  and puts every other frame back: Adam's first steps move a camera that is already right by about the rate, so
-  from good priors an ungated round moves the cameras away from the truth (docs/TRAINING.md, "The tracking gate");
+  and puts every other frame back: from good priors an ungated round moves the cameras away from the truth (most
+  of it the coarse levels' splatting, below), and from a metre off the gate holds back the corrections as well
+  (docs/TRAINING.md, "The tracking gate");
+- ``render_full`` (off by default) makes a coarse level splat at the training size and area-average the render,
+  as the targets are averaged: splatted at the level's size, every Gaussian is dilated by the projection's 0.3 px^2
+  at that size, so a map's sub-pixel Gaussians grow against the image and the coarse loss has its optimum
+  elsewhere than the full-size one (docs/TRAINING.md, "Coarse levels that blur the full-size render");
 - frame 0 stays fixed (the gauge) and held-out frames are never rendered, so their corrections are untouched;
 - a cancellation between two steps puts the corrections back as they were before the round, so a resumed run
   tracks the round again from the same state.
