@@ -133,8 +133,8 @@ def track_cameras(graph, images: Tensor, frames: Sequence[int], config: Tracking
     opt = torch.optim.Adam([{"params": [cam.omega], "lr": config.lr_rotation},
                             {"params": [cam.tau], "lr": config.lr_translation * extent}], eps=1e-15)
     report = {"levels": [], **({"render_full": True} if config.render_full else {})}
+    full = level_inputs(graph, images, attention, frames, 1) if config.gate or config.render_full else None
     if config.gate:
-        full = level_inputs(graph, images, attention, frames, 1)
         loss_before = full_size_losses(graph, frames, full, ssim_weight, lambda_sem, delta)  # [F]
     for li, level in enumerate(config.levels):
         factor = 0.5 ** li
@@ -145,7 +145,7 @@ def track_cameras(graph, images: Tensor, frames: Sequence[int], config: Tracking
         render_size = None
         if config.render_full and level_size(graph.width, graph.height, level) != (graph.width, graph.height):
             render_size = (graph.width, graph.height)  # splat at the training size, compare blurred
-            intrinsics = level_inputs(graph, images, None, frames, 1)[2]  # frame -> [3, 3] at that size
+            intrinsics = full[2]  # frame -> [3, 3] at that size
         first = last = 0.0
         for step in range(config.steps):
             if should_stop is not None and should_stop():
