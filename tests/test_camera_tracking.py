@@ -101,17 +101,24 @@ def test_centre_only_levels_leave_the_rotations_alone(bundle):
     assert not torch.equal(g.camera.omega.detach()[5], omega0[5])  # the second level turned frame 5
 
 
-def test_the_gate_keeps_exact_cameras_exact_and_still_pulls_displaced_ones_back(bundle):
+@pytest.fixture(scope="module")
+def plain_round(bundle) -> torch.Tensor:
+    """tau [T, 3] after a default round (splatted at each level's size, ungated) over frames 2-5 of ``_displaced``:
+    the reference the gate's and render_full's tests each compare with."""
+    g, images = _displaced(bundle)
+    track_cameras(g, images, [2, 3, 4, 5], TrackingConfig(), scene_extent(g))
+    return g.camera.tau.detach().clone()
+
+
+def test_the_gate_keeps_exact_cameras_exact_and_still_pulls_displaced_ones_back(bundle, plain_round):
     """``gate``: a frame keeps the round's pose only where its loss at the training size went down. Frames 3 and
     4 start exact: an ungated round moves them (Adam's first steps have the rate's size whatever the gradient's),
     the gated round puts them back to exactly zero. Displaced frames 2 and 5 keep their correction."""
     frames = [2, 3, 4, 5]
+    assert (plain_round[[3, 4]].norm(dim=-1) > 0.03).all()  # measured 0.094, 0.068 m
+    ungated = plain_round[[2, 5]]
     g, images = _displaced(bundle)
     err0 = g.camera.tau[[2, 5]].detach().norm(dim=-1)  # [2]
-    track_cameras(g, images, frames, TrackingConfig(), scene_extent(g))
-    assert (g.camera.tau[[3, 4]].detach().norm(dim=-1) > 0.03).all()  # measured 0.094, 0.068 m
-    ungated = g.camera.tau[[2, 5]].detach().clone()
-    g, images = _displaced(bundle)
     rep = track_cameras(g, images, frames, TrackingConfig(gate=True), scene_extent(g))
     tau, omega = g.camera.tau.detach(), g.camera.omega.detach()
     assert torch.equal(tau[[3, 4]], torch.zeros(2, 3)) and torch.equal(omega[[3, 4]], torch.zeros(2, 3))
@@ -123,17 +130,16 @@ def test_the_gate_keeps_exact_cameras_exact_and_still_pulls_displaced_ones_back(
     assert g.camera.omega.requires_grad and g.camera.tau.requires_grad
 
 
-def test_coarse_levels_that_blur_full_size_renders_leave_exact_cameras_and_pull_displaced_ones_home(bundle):
+def test_coarse_levels_that_blur_full_size_renders_leave_exact_cameras_and_pull_displaced_ones_home(bundle,
+                                                                                                   plain_round):
     """``render_full``: a coarse level splats at the training size and area-averages the render, as the targets
     are averaged, so its optimum is the full-size one. Splatted at the level's size, the map's Gaussians render
     otherwise than blurred, and the round moves exact frames 3 and 4 (measured 0.094 and 0.068 m) and leaves
     displaced frames 2 and 5 0.06-0.11 m off; blurred, it keeps 3 and 4 within 2 mm and brings 2 and 5 within 5."""
     frames = [2, 3, 4, 5]
+    splatted = plain_round[frames].norm(dim=-1)  # [4]
     g, images = _displaced(bundle)
     err0 = g.camera.tau[[2, 5]].detach().norm(dim=-1)  # [2], 0.39 and 0.40 m
-    track_cameras(g, images, frames, TrackingConfig(), scene_extent(g))
-    splatted = g.camera.tau.detach()[frames].norm(dim=-1)  # [4]
-    g, images = _displaced(bundle)
     rep = track_cameras(g, images, frames, TrackingConfig(render_full=True), scene_extent(g))
     blurred = g.camera.tau.detach()[frames].norm(dim=-1)  # [4]
     assert rep["render_full"]  # the trainer's tracking log, and so a run's record, says how the round rendered
