@@ -21,8 +21,9 @@ import importlib
 import json
 from pathlib import Path
 
-from agg_suite import ROOT, VARIANTS, camera_scores, probe_config, synth_bundle  # bench/ is the script's folder
+from agg_suite import ROOT, VARIANTS, probe_config, synth_bundle  # bench/ is the script's folder
 from agg_suite_depth import graph_depth_errors
+from agg_suite_scores import camera_scores
 
 
 def train_with_curve(bundle_path: Path, scene_dir: Path, cfg, ablate: str, every: int, out_path: Path | None,

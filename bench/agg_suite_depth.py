@@ -28,7 +28,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from agg_suite import ROOT, bundle_dir, load_graph  # bench/ is the script's folder, so it is on the path
+from agg_suite import ROOT, bundle_dir  # bench/ is the script's folder, so it is on the path
+from agg_suite_scores import load_graph
 
 BANDS_M = (0.0, 5.0, 10.0, 20.0, 40.0, float("inf"))
 

@@ -28,8 +28,9 @@ import cv2
 import numpy as np
 import torch
 
-from agg_suite import bundle_dir, load_graph  # bench/ is the script's folder, so it is on the path
+from agg_suite import bundle_dir  # bench/ is the script's folder, so it is on the path
 from agg_suite_depth import add_finished_scene_args
+from agg_suite_scores import load_graph
 
 PATH_RADIUS_M = 2.5
 

@@ -21,8 +21,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from agg_suite import probe_config, sim3_scores, synth_bundle  # bench/ is the script's folder
+from agg_suite import probe_config, synth_bundle  # bench/ is the script's folder
 from agg_suite_curve import add_scene_args, reconstruct_until
+from agg_suite_scores import sim3_scores
 
 
 def cameras_now(graph, frames: list[int]) -> np.ndarray:
