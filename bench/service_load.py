@@ -41,14 +41,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from service.demo import (
-    SAMPLE,
-    SAMPLE_CALIBRATION,
-    DemoConfig,
-    EmbeddedService,
-    check,
-    upload,
-)
+from service.demo import SAMPLE, SAMPLE_CALIBRATION, DemoConfig, check, upload
+from service.embedded import EmbeddedService
 
 
 def percentile(values: list[float], q: float) -> float:
