@@ -14,7 +14,7 @@ from collections import defaultdict
 
 import numpy as np
 
-from bench.agg_suite_report import _fmt, _mean_per
+from bench.agg_suite_report import _fmt, _machines, _mean_per
 
 
 def _seed(r: dict) -> int | None:
@@ -73,5 +73,5 @@ def real_tables(runs: list[dict]) -> list[str]:
                        f"{'/'.join(str(x['n_agents']) for x in m)} | "
                        f"{np.mean([mine[s]['wall_s'] for s in seeds]):.0f} | "
                        + " | ".join("–" if variant == "agg" else _per(x) for x in (d, da, db)) + " |")
-        out.append("")
+        out += ["", _machines(list(rows.values())), ""]
     return out

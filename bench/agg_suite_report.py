@@ -188,10 +188,15 @@ def _machines(runs: list[dict]) -> str:
     count: dict[str, int] = defaultdict(int)
     for r in runs:
         count[(r.get("machine") or {}).get("cpu", "not recorded")] += 1
-    options = ""
-    for key, what in (("gate", "the tracking gate"), ("render_full", "coarse tracking levels rendered at full size")):
-        n = sum(1 for r in runs if _tracking_option(r, key))
-        options += f" With {what}: {n} of {len(runs)} runs." if n else ""
+    gate = sum(1 for r in runs if _tracking_option(r, "gate"))
+    options = f" With the tracking gate: {gate} of {len(runs)} runs." if gate else ""
+    tracked = [r for r in runs if (r.get("summary") or {}).get("tracking")]
+    full = sum(1 for r in tracked if _tracking_option(r, "render_full"))
+    if full:
+        options += f" Coarse tracking levels rendered at full size (`render_full`): {full} of {len(runs)} runs."
+    if len(tracked) > full:
+        options += (f" Coarse tracking levels splatted at their own size (the default before 2026-12-07): "
+                    f"{len(tracked) - full} of {len(runs)} runs.")
     return "Machines: " + ", ".join(f"{cpu} ({n} runs)" for cpu, n in sorted(count.items())) + "." + options
 
 
@@ -203,18 +208,28 @@ def _tracking_option(r: dict, key: str) -> bool:
             or any(key in row for row in (r.get("summary") or {}).get("tracking") or []))
 
 
-def probe_table(runs: list[dict], title: str = "Probes: the same runs with training options replaced") -> list[str]:
-    """Probe runs (a preset with options replaced) beside the plain run of the same seed, noise and variant."""
+def _render_full(r: dict) -> bool:
+    """Whether a run's coarse tracking levels rendered at full size: the default from 2026-12-07. Runs are paired
+    only with runs of the same engine, the suite's earlier records (runs/superseded/before_render_full/) included."""
+    return _tracking_option(r, "render_full")
+
+
+def probe_table(runs: list[dict], title: str = "Probes: the same runs with training options replaced",
+                plain_pool: list[dict] | None = None) -> list[str]:
+    """Probe runs (a preset with options replaced) beside the plain run of the same seed, noise and variant, made
+    with the same coarse tracking levels (from ``plain_pool``, default ``runs``)."""
     probes = [r for r in runs if r["kind"] == "probe" and not r.get("oracle_agents")]
     if not probes:
         return []
-    plain = {(r["seed"], r["noise"], r["variant"], r["preset"]): r for r in runs if r["kind"] == "synth"}
+    plain = {(r["seed"], r["noise"], r["variant"], r["preset"], _render_full(r)): r
+             for r in (plain_pool if plain_pool is not None else runs) if r["kind"] == "synth"}
     out = [f"### {title}", "",
            "| Seed | Noise | Variant | Options | PSNR | Agent PSNR | Gaussians | Wall (s) | Unchanged PSNR / agent "
            "PSNR |", "|---|---|---|---|---|---|---|---|---|"]
     for r in sorted(probes, key=lambda r: (r["seed"], r["noise"], " ".join(r["set"]), r["variant"])):
         a = r.get("agent_noise", 0.0)
-        m, ref = r["metrics"], None if a else plain.get((r["seed"], r["noise"], r["variant"], r["preset"]))
+        m, ref = r["metrics"], None if a else plain.get((r["seed"], r["noise"], r["variant"], r["preset"],
+                                                           _render_full(r)))
         base = _psnr_pair(ref)
         opts = ", ".join(r["set"] + ([f"agent noise {a:g} m"] if a else []))
         out.append(f"| {r['seed']} | {r['noise']:g} m | {r['variant']} | {opts} | {_fmt(m['psnr'])} | "
@@ -346,7 +361,7 @@ def other_tables(runs: list[dict]) -> list[str]:
             m, s = r["metrics"], r["summary"]
             out.append(f"| {r['preset']} | {_fmt(m['psnr'])} | {_fmt(m['psnr_agents'])} | {m['n_gaussians']} | "
                        f"{s['seconds_train']:.0f} | {_fmt(m['render_fps'], 1)} |")
-        out.append("")
+        out += ["", _machines(presets), ""]
     return out
 
 
@@ -355,7 +370,8 @@ VARIANTS_MORE = ("agg", "baseline", "no-tick-tock", "no-semantic", "no-topology"
 
 def more_scenes_table(runs: list[dict], extra: list[dict]) -> list[str]:
     """Scenes beyond the suite's seeds (records in runs/scenes/): per seed, AGG and each variant run there, and the
-    Δ = AGG − variant over those seeds and over them together with the suite's seeds at the same preset and noise."""
+    Δ = AGG − variant over those seeds and over them together with the suite's seeds at the same preset and noise,
+    made with the same coarse tracking levels (``runs`` may hold the suite's earlier records for that)."""
     extra = [r for r in extra if r["kind"] == "synth"]
     if not extra:
         return []
@@ -364,8 +380,9 @@ def more_scenes_table(runs: list[dict], extra: list[dict]) -> list[str]:
            "held-out PSNR in dB; Δ = AGG − variant. " + _machines(extra), ""]
     for preset, noise in sorted({(r["preset"], r["noise"]) for r in extra}):
         cell = {(r["seed"], r["variant"]): r for r in extra if (r["preset"], r["noise"]) == (preset, noise)}
+        engine = {_render_full(r) for r in cell.values()}
         suite = {(r["seed"], r["variant"]): r for r in runs
-                 if r["kind"] == "synth" and (r["preset"], r["noise"]) == (preset, noise)}
+                 if r["kind"] == "synth" and (r["preset"], r["noise"]) == (preset, noise) and _render_full(r) in engine}
         variants = [v for v in VARIANTS_MORE if any(k[1] == v for k in cell)]
         out += [f"`{preset}`, {noise:g} m of camera noise:", "",
                 "| Seed | " + " | ".join(variants) + " | Missed car within 1 m / false agent pruned (AGG) |",
@@ -455,9 +472,10 @@ def write_report(work: Path, docs: Path, machine: str) -> None:
              "one OpenMP thread per run, two runs at a time).", ""]
     for preset in synth_presets(runs):
         lines += synth_tables(runs, preset) + [""]
-    lines += probe_table(runs) + oracle_table(runs) + noisy_box_table(runs)
+    earlier = _load(work / "runs" / "superseded" / "before_render_full")  # the suite before render_full
+    lines += probe_table(runs, plain_pool=runs + earlier) + oracle_table(runs) + noisy_box_table(runs)
     scenes = _load(work / "runs" / "scenes")
-    lines += more_scenes_table(runs, scenes) + probe_table(scenes, "Probes on the further seeds")
+    lines += more_scenes_table(runs + earlier, scenes) + probe_table(scenes, "Probes on the further seeds")
     lines += other_tables(runs)
     from bench.agg_suite_real import real_tables
 

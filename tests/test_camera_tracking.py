@@ -75,13 +75,14 @@ def test_tracking_pulls_displaced_cameras_back_and_touches_nothing_else(bundle):
 
 
 def test_the_full_size_level_finishes_closer_than_half_size(bundle):
-    """The default ends at the training size: the optimum at half size is not the full-size one, and a level at
-    full size after (4, 2) brings the displaced cameras closer (docs/TRAINING.md, camera tracking)."""
+    """The default ends at the training size: splatted at half size (``render_full`` off), the optimum is not the
+    full-size one, and a level at full size after (4, 2) brings the displaced cameras closer (docs/TRAINING.md,
+    camera tracking)."""
     assert TrackingConfig().levels[-1] == 1
     errs = {}
     for levels in [(4, 2), (4, 2, 1)]:
         g, images = _displaced(bundle)
-        track_cameras(g, images, [2, 5], TrackingConfig(levels=levels), scene_extent(g))
+        track_cameras(g, images, [2, 5], TrackingConfig(levels=levels, render_full=False), scene_extent(g))
         tau, omega = g.camera.tau.detach(), g.camera.omega.detach()
         errs[levels] = (float(tau[[2, 5]].norm(dim=-1).sum()), float(omega[5].norm()))  # metres, radians
     assert errs[(4, 2, 1)][0] < 0.85 * errs[(4, 2)][0], errs  # measured: 0.171 m against 0.211 m
@@ -103,10 +104,10 @@ def test_centre_only_levels_leave_the_rotations_alone(bundle):
 
 @pytest.fixture(scope="module")
 def plain_round(bundle) -> torch.Tensor:
-    """tau [T, 3] after a default round (splatted at each level's size, ungated) over frames 2-5 of ``_displaced``:
-    the reference the gate's and render_full's tests each compare with."""
+    """tau [T, 3] after a round splatted at each level's size (``render_full`` off, the default until 2026-12-07;
+    ungated) over frames 2-5 of ``_displaced``: the reference the gate's and render_full's tests compare with."""
     g, images = _displaced(bundle)
-    track_cameras(g, images, [2, 3, 4, 5], TrackingConfig(), scene_extent(g))
+    track_cameras(g, images, [2, 3, 4, 5], TrackingConfig(render_full=False), scene_extent(g))
     return g.camera.tau.detach().clone()
 
 
@@ -119,7 +120,7 @@ def test_the_gate_keeps_exact_cameras_exact_and_still_pulls_displaced_ones_back(
     ungated = plain_round[[2, 5]]
     g, images = _displaced(bundle)
     err0 = g.camera.tau[[2, 5]].detach().norm(dim=-1)  # [2]
-    rep = track_cameras(g, images, frames, TrackingConfig(gate=True), scene_extent(g))
+    rep = track_cameras(g, images, frames, TrackingConfig(gate=True, render_full=False), scene_extent(g))
     tau, omega = g.camera.tau.detach(), g.camera.omega.detach()
     assert torch.equal(tau[[3, 4]], torch.zeros(2, 3)) and torch.equal(omega[[3, 4]], torch.zeros(2, 3))
     assert torch.equal(tau[[2, 5]], ungated)  # the same round, kept where it paid

@@ -26,7 +26,7 @@ against its map:
   and puts every other frame back: from good priors an ungated round moves the cameras away from the truth (most
   of it the coarse levels' splatting, below), and from a metre off the gate holds back the corrections as well
   (docs/TRAINING.md, "The tracking gate");
-- ``render_full`` (off by default) makes a coarse level splat at the training size and area-average the render,
+- ``render_full`` (the default) makes a coarse level splat at the training size and area-average the render,
   as the targets are averaged: splatted at the level's size, every Gaussian is dilated by the projection's 0.3 px^2
   at that size, so a map's sub-pixel Gaussians grow against the image and the coarse loss has its optimum
   elsewhere than the full-size one (docs/TRAINING.md, "Coarse levels that blur the full-size render");
@@ -63,7 +63,7 @@ class TrackingConfig:
     # before it move the centres alone (0: every level turns them)
     gate: bool = False  # a frame keeps the round's pose only if its loss at the training size went down; else it
     # goes back to the pose it had before the round
-    render_full: bool = False  # a coarse level renders at the training size and area-averages the render to the
+    render_full: bool = True  # a coarse level renders at the training size and area-averages the render to the
     # level's size (the full-size render blurred, as the targets are) instead of splatting at the level's size
 
     def scaled(self, scale: float) -> "TrackingConfig":
