@@ -85,6 +85,7 @@ def synth_tables(runs: list[dict], preset: str) -> list[str]:
            "",
            "| Pose noise | Seeds | AGG PSNR | Baseline PSNR | Δ | AGG agent PSNR | Baseline agent PSNR | Δ agents |",
            "|---|---|---|---|---|---|---|---|"]
+    splatted = False  # a row whose runs splatted each coarse tracking level at its own size
     for n in noises:
         a, b = by.get((n, "agg"), []), by.get((n, "baseline"), [])
         seeds = sorted({r["seed"] for r in a} & {r["seed"] for r in b})
@@ -93,10 +94,15 @@ def synth_tables(runs: list[dict], preset: str) -> list[str]:
         pa = {r["seed"]: r["metrics"] for r in a}
         pb = {r["seed"]: r["metrics"] for r in b}
         d, dg = _deltas(pa, pb, seeds)
-        out.append(f"| {n:g} m | {','.join(map(str, seeds))} | {_fmt(_mean([pa[s]['psnr'] for s in seeds]))} | "
+        mark = "" if all(_render_full(r) for r in a + b if r["seed"] in seeds) else " †"
+        splatted = splatted or bool(mark)
+        out.append(f"| {n:g} m{mark} | {','.join(map(str, seeds))} | {_fmt(_mean([pa[s]['psnr'] for s in seeds]))} | "
                    f"{_fmt(_mean([pb[s]['psnr'] for s in seeds]))} | {_mean_per(d)} | "
                    f"{_fmt(_mean([pa[s]['psnr_agents'] for s in seeds]))} | "
                    f"{_fmt(_mean([pb[s]['psnr_agents'] for s in seeds]))} | {_mean_per(dg)} |")
+    if splatted:
+        out += ["", "† Made before 2026-12-07 with each coarse tracking level splatted at its own size (the earlier "
+                "default; `render_full` off); the other rows with `render_full`."]
     abl = [v for v in ("no-tick-tock", "no-semantic", "no-topology") if any(k[1] == v for k in by)]
     if abl:
         out += ["", "**Ablations** (each component switched off alone; Δ = AGG − ablation, same seeds):", "",
