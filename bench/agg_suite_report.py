@@ -197,7 +197,7 @@ def _machines(runs: list[dict]) -> str:
     gate = sum(1 for r in runs if _tracking_option(r, "gate"))
     options = f" With the tracking gate: {gate} of {len(runs)} runs." if gate else ""
     tracked = [r for r in runs if (r.get("summary") or {}).get("tracking")]
-    full = sum(1 for r in tracked if _tracking_option(r, "render_full"))
+    full = sum(1 for r in tracked if _render_full(r))
     if full:
         options += f" Coarse tracking levels rendered at full size (`render_full`): {full} of {len(runs)} runs."
     if len(tracked) > full:
