@@ -377,20 +377,24 @@ VARIANTS_MORE = ("agg", "baseline", "no-tick-tock", "no-semantic", "no-topology"
 def more_scenes_table(runs: list[dict], extra: list[dict]) -> list[str]:
     """Scenes beyond the suite's seeds (records in runs/scenes/): per seed, AGG and each variant run there, and the
     Δ = AGG − variant over those seeds and over them together with the suite's seeds at the same preset and noise,
-    made with the same coarse tracking levels (``runs`` may hold the suite's earlier records for that)."""
+    made with the same coarse tracking levels (``runs`` may hold the suite's earlier records for that). Each engine
+    gets its own tables: a scene's runs are paired only with runs of the same engine."""
     extra = [r for r in extra if r["kind"] == "synth"]
     if not extra:
         return []
     out = ["### More scenes (not the acceptance suite): AGG against each variant on further seeds", "",
            "Same generator, noise and preset as the suite, other seeds (`runs/scenes/`). Full image / agents, "
            "held-out PSNR in dB; Δ = AGG − variant. " + _machines(extra), ""]
-    for preset, noise in sorted({(r["preset"], r["noise"]) for r in extra}):
-        cell = {(r["seed"], r["variant"]): r for r in extra if (r["preset"], r["noise"]) == (preset, noise)}
-        engine = {_render_full(r) for r in cell.values()}
+    for preset, noise, full in sorted({(r["preset"], r["noise"], _render_full(r)) for r in extra},
+                                      key=lambda k: (k[0], k[1], not k[2])):
+        key = (preset, noise, full)
+        cell = {(r["seed"], r["variant"]): r for r in extra if (r["preset"], r["noise"], _render_full(r)) == key}
         suite = {(r["seed"], r["variant"]): r for r in runs
-                 if r["kind"] == "synth" and (r["preset"], r["noise"]) == (preset, noise) and _render_full(r) in engine}
+                 if r["kind"] == "synth" and (r["preset"], r["noise"], _render_full(r)) == key}
         variants = [v for v in VARIANTS_MORE if any(k[1] == v for k in cell)]
-        out += [f"`{preset}`, {noise:g} m of camera noise:", "",
+        levels = ("coarse tracking levels that blur the full-size render (the default)" if full else
+                  "coarse tracking levels splatted at their own size (before 2026-12-07)")
+        out += [f"`{preset}`, {noise:g} m of camera noise, {levels}:", "",
                 "| Seed | " + " | ".join(variants) + " | Missed car within 1 m / false agent pruned (AGG) |",
                 "|---" * (len(variants) + 2) + "|"]
         for s in sorted({k[0] for k in cell}):
