@@ -189,11 +189,14 @@ def synth_tables(runs: list[dict], preset: str) -> list[str]:
 
 
 def _machines(runs: list[dict]) -> str:
-    """Which CPUs the runs ran on (records carry it from the thirteenth session on): the same run on two CPUs
-    need not give the same numbers, so a Δ between runs from different machines holds that difference too."""
+    """Which CPUs the runs ran on (records carry the model and AVX-512 from 2026-11-25 on): the same run on two
+    CPUs need not give the same numbers, so a Δ between runs from different machines holds that difference too. A
+    model recorded without AVX-512 is counted apart from the same model with it."""
     count: dict[str, int] = defaultdict(int)
     for r in runs:
-        count[(r.get("machine") or {}).get("cpu", "not recorded")] += 1
+        machine = r.get("machine") or {}
+        no_avx512 = " without AVX-512" if machine.get("avx512") is False else ""
+        count[machine.get("cpu", "not recorded") + no_avx512] += 1
     gate = sum(1 for r in runs if _tracking_option(r, "gate"))
     options = f" With the tracking gate: {gate} of {len(runs)} runs." if gate else ""
     tracked = [r for r in runs if (r.get("summary") or {}).get("tracking")]
