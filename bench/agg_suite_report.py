@@ -18,7 +18,9 @@ def _load(folder: Path) -> list[dict]:
 
 
 def _fmt(v, nd=2) -> str:
-    return "–" if v is None or (isinstance(v, float) and not np.isfinite(v)) else f"{v:.{nd}f}"
+    if v is None or (isinstance(v, float) and not np.isfinite(v)):
+        return "–"
+    return f"{v:.{nd}f}" if round(v, nd) != 0 else f"{0:.{nd}f}"  # no "-0.00"
 
 
 def _psnr_pair(r: dict | None) -> str:
@@ -487,7 +489,8 @@ def write_report(work: Path, docs: Path, machine: str) -> None:
         lines += synth_tables(runs, preset) + [""]
     earlier = _load(work / "runs" / "superseded" / "before_render_full")  # the suite before render_full
     lines += probe_table(runs, plain_pool=runs + earlier) + oracle_table(runs) + noisy_box_table(runs)
-    scenes = _load(work / "runs" / "scenes")
+    scenes = _load(work / "runs" / "scenes")  # the further seeds' earlier records are in its superseded/ too
+    scenes += _load(work / "runs" / "scenes" / "superseded" / "before_render_full")
     lines += more_scenes_table(runs + earlier, scenes) + probe_table(scenes, "Probes on the further seeds")
     lines += other_tables(runs)
     from bench.agg_suite_real import real_tables
