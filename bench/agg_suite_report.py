@@ -390,12 +390,13 @@ def more_scenes_table(runs: list[dict], extra: list[dict]) -> list[str]:
     out = ["### More scenes (not the acceptance suite): AGG against each variant on further seeds", "",
            "Same generator, noise and preset as the suite, other seeds (`runs/scenes/`). Full image / agents, "
            "held-out PSNR in dB; Δ = AGG − variant. " + _machines(extra), ""]
-    for preset, noise, full in sorted({(r["preset"], r["noise"], _render_full(r)) for r in extra},
-                                      key=lambda k: (k[0], k[1], not k[2])):
-        key = (preset, noise, full)
-        cell = {(r["seed"], r["variant"]): r for r in extra if (r["preset"], r["noise"], _render_full(r)) == key}
-        suite = {(r["seed"], r["variant"]): r for r in runs
-                 if r["kind"] == "synth" and (r["preset"], r["noise"], _render_full(r)) == key}
+    def table_of(r: dict) -> tuple:  # the runs of one table: one preset, noise and engine
+        return r["preset"], r["noise"], _render_full(r)
+
+    for key in sorted({table_of(r) for r in extra}, key=lambda k: (k[0], k[1], not k[2])):
+        preset, noise, full = key
+        cell = {(r["seed"], r["variant"]): r for r in extra if table_of(r) == key}
+        suite = {(r["seed"], r["variant"]): r for r in runs if r["kind"] == "synth" and table_of(r) == key}
         variants = [v for v in VARIANTS_MORE if any(k[1] == v for k in cell)]
         levels = ("coarse tracking levels that blur the full-size render (the default)" if full else
                   "coarse tracking levels splatted at their own size (before 2026-12-07)")
