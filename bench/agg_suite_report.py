@@ -401,13 +401,15 @@ def more_scenes_table(runs: list[dict], extra: list[dict]) -> list[str]:
         levels = ("coarse tracking levels that blur the full-size render (the default)" if full else
                   "coarse tracking levels splatted at their own size (before 2026-12-07)")
         out += [f"`{preset}`, {noise:g} m of camera noise, {levels}:", "",
-                "| Seed | " + " | ".join(variants) + " | Missed car within 1 m / false agent pruned (AGG) |",
+                "| Seed | " + " | ".join(variants)
+                + " | Missed car within 1 m (share of its visible frames) / false agent pruned (AGG) |",
                 "|---" * (len(variants) + 2) + "|"]
         for s in sorted({k[0] for k in cell}):
             agg = cell.get((s, "agg"))
             topo = (agg or {}).get("topology") or {}
             match = topo.get("missed_match") or {}
-            t = (f"{_fmt(match.get('within_1m'))} / {len(topo.get('false_pruned', []))} of "
+            within = match.get("within_1m_of_visible", match.get("within_1m"))  # of the frames it is visible in
+            t = (f"{_fmt(within)} / {len(topo.get('false_pruned', []))} of "
                  f"{len(topo.get('false_ids', []))}") if topo else "–"
             out.append(f"| {s} | " + " | ".join(_psnr_pair(cell.get((s, v))) for v in variants) + f" | {t} |")
         out.append("")
