@@ -408,8 +408,7 @@ def more_scenes_table(runs: list[dict], extra: list[dict]) -> list[str]:
             agg = cell.get((s, "agg"))
             topo = (agg or {}).get("topology") or {}
             match = topo.get("missed_match") or {}
-            within = match.get("within_1m_of_visible", match.get("within_1m"))  # of the frames it is visible in
-            t = (f"{_fmt(within)} / {len(topo.get('false_pruned', []))} of "
+            t = (f"{_fmt(match.get('within_1m_of_visible'))} / {len(topo.get('false_pruned', []))} of "
                  f"{len(topo.get('false_ids', []))}") if topo else "–"
             out.append(f"| {s} | " + " | ".join(_psnr_pair(cell.get((s, v))) for v in variants) + f" | {t} |")
         out.append("")
