@@ -368,6 +368,11 @@ def test_a_spawned_trajectory_extends_while_the_features_see_the_agent():
     kw = {"min_speed": 0.05, "extend": 2, "in_view": lambda i, c: True, "fallback_yaw": 0.0}
     poses, valid = trajectory_poses(state, **kw)
     assert np.flatnonzero(valid).tolist() == list(range(3, 12))
+    seen = []  # in_view is asked about the extrapolated box: its centre and the track's heading (+x)
+    trajectory_poses(state, **{**kw, "in_view": lambda i, pose: seen.append((i, pose)) or True})
+    i, pose = next((i, pose) for i, pose in seen if i == 11)
+    np.testing.assert_allclose(pose[:3, 3], [11.0, 0.0, 10.0])
+    np.testing.assert_allclose(pose[:3, 0], [1.0, 0.0, 0.0], atol=1e-12)
     poses, valid = trajectory_poses(state, **kw, evidence=lambda i, c: 1 <= i <= 14 and i != 13)
     assert np.flatnonzero(valid).tolist() == list(range(1, 13))  # the chain stops at the first frame without it
     np.testing.assert_allclose(poses[:13, 0, 3], np.concatenate([[1.0], t[1:13]]))  # x = frame, linear
@@ -376,7 +381,7 @@ def test_a_spawned_trajectory_extends_while_the_features_see_the_agent():
 
 
 def test_region_agent_fraction_reads_the_cells_around_a_pixel_and_skips_other_agents():
-    from agg.train.topology_track import region_agent_fraction
+    from agg.train.topology_view import region_agent_fraction
 
     bank = {"background": np.array([[1.0, 0, 0]]), "rigid": np.array([[0, 1.0, 0]]),
             "non-rigid": np.array([[0, 0, 1.0]])}
@@ -391,6 +396,10 @@ def test_region_agent_fraction_reads_the_cells_around_a_pixel_and_skips_other_ag
     exclude = np.zeros((80, 160), bool)
     exclude[16:48, 32:64] = True  # another agent's prior mask covers the car: no cell of it counts
     assert region_agent_fraction(feats, bank, 0.5, car, 12.0, 160, 80, exclude) == 0.0
+    # the larger square cut to the car's pixels (a box's part in the image) reads the car alone
+    within = (np.array([32.0, 16.0]), np.array([63.0, 47.0]))
+    assert region_agent_fraction(feats, bank, 0.5, car, 40.0, 160, 80, within=within) == 1.0
+    assert region_agent_fraction(feats, bank, 0.5, np.array([130.0, 60.0]), 12.0, 160, 80, within=within) == 0.0
 
 
 def test_height_above_road_reads_the_image_space_plane_of_a_pitched_camera():

@@ -46,9 +46,11 @@ silhouette around the clusters' (``topology_silhouette``: the clusters crowd a m
 ``silhouette``), the centroids moved from the visible surface to the box centre and RTS-smoothed again
 (``topology_track.spawn_trajectory``: a box of the graph's median agent size or ``rigid_size_m``, yaw from the
 ground velocity, its surface weighted by solid angle, and Gauss-Newton passes that leave out the part of the box
-outside the image, for a car cut off by the image edge); its track id is one more than every id seen so far (never
-reused). At each later evolution (and when training ends) a spawned agent's box is re-anchored on its own rendered
-surface (``topology_anchor``), where a box still leads its car.
+outside the image, for a car cut off by the image edge), valid past the track's ends while its box is in view
+and the features see an agent there (``topology_view``: also a box whose centre has left the image at its
+edge); its track id is one more than every id seen so far (never reused). At each later evolution (and when
+training ends) a spawned agent's box is re-anchored on its own rendered surface (``topology_anchor``), where a
+box still leads its car.
 **Pruning**: an instance whose ``prune_quantile`` opacity quantile is below ``prune_opacity`` or that has fewer
 than ``min_agent_gaussians`` Gaussians is removed (before matching, so dead agents absorb nothing). A false agent
 that does not die out (it keeps rendering the road it was initialised on) is **demoted** when it is static and not

@@ -22,6 +22,7 @@ from agg.priors.tracklet_ground import height_above_road
 from agg.train import topology_motion as tm
 from agg.train import topology_silhouette as ts
 from agg.train import topology_track as tt
+from agg.train import topology_view as tv
 
 
 def plan_spawns(evo, graph, unmatched: list[list[dict]], means: np.ndarray, taken: np.ndarray,
@@ -50,23 +51,6 @@ def plan_spawns(evo, graph, unmatched: list[list[dict]], means: np.ndarray, take
         k = evo.K[min(i, len(evo.K) - 1)]
         return tt.project(points, cfw[i], k, evo.width, evo.height, cfg.near_m * u)[2]
 
-    def in_view(i: int, centre: np.ndarray) -> bool:
-        return bool(in_image(i, centre[None])[0])
-
-    def evidence_for(half: np.ndarray):
-        def evidence(i: int, centre: np.ndarray) -> bool:
-            """Agent-like features around the box centre's pixel (a square of the box's half height), off
-            the pixels the prior dynamic masks give to other agents."""
-            k = evo.K[min(i, len(evo.K) - 1)]
-            uv, z, vis = tt.project(centre[None], cfw[i], k, evo.width, evo.height, cfg.near_m * u)
-            if evo.bank is None or not vis[0]:
-                return False
-            frac = tt.region_agent_fraction(evo.semantics.features[i], evo.bank, cfg.tau_sem, uv[0],
-                                            k[0, 0] * half[1] / z[0], evo.width, evo.height,
-                                            None if evo.dynamic is None else evo.dynamic[i])
-            return frac >= cfg.extend_agent_fraction
-        return evidence
-
     for group in groups:
         per_frame: dict[int, list[dict]] = {}  # frame -> the group's clusters there
         for i in group:
@@ -89,6 +73,7 @@ def plan_spawns(evo, graph, unmatched: list[list[dict]], means: np.ndarray, take
         nonrigid = float(np.mean([c["nonrigid"] for _, c in clusters]))
         cls = "non-rigid" if nonrigid > 0.5 else "rigid"
         half = spawn_half(graph, cls, cfg, u, evo.box_half)
+        in_view, evidence = tv.box_visibility(evo, cfw, half)
         if cfg.silhouette and evo.bank is not None and evo.depth is not None:
             centroids = {t: silhouette_or(evo, t, c, cfw[t], half, report, frames)
                          for t, c in centroids.items()}
@@ -103,7 +88,7 @@ def plan_spawns(evo, graph, unmatched: list[list[dict]], means: np.ndarray, take
         poses, valid = tt.spawn_trajectory(
             state, centroids, cam_centres, half, in_view, fallback, meas_sigma=params.meas_sigma,
             accel_sigma=cfg.smooth_accel_sigma_m * u, init_vel_sigma=params.init_vel_sigma,
-            min_speed=cfg.min_speed_m * u, extend=cfg.extend_frames, evidence=evidence_for(half), in_image=in_image)
+            min_speed=cfg.min_speed_m * u, extend=cfg.extend_frames, evidence=evidence, in_image=in_image)
         contact = road_contact(evo, poses, valid, half, cfw)
         if contact is not None and contact[0] > 1.0:  # its box floats above (or sinks below) the road: no agent
             report["floating"].append(round(contact[1], 2))

@@ -385,62 +385,23 @@ def cell_centre_pixels(xs: np.ndarray, ys: np.ndarray, w: int, h: int, width: in
     return px, py
 
 
-def region_agent_fraction(features: np.ndarray, bank: dict, tau_sem: float, uv: np.ndarray, radius: float,
-                          width: int, height: int, exclude: np.ndarray | None = None) -> float:
-    """Fraction of agent-like cells of a low-resolution feature map [h, w, C] in the square of half side
-    ``radius`` pixels around ``uv`` [2] (training-resolution pixels); cells whose centre falls on ``exclude``
-    [height, width] (e.g. the prior dynamic masks: pixels already explained by another agent) are skipped.
-    0 when no cell is left."""
-    h, w = features.shape[:2]
-    lo = np.floor((uv - radius + 0.5) * np.array([w / width, h / height]))  # cells holding the square's corners
-    hi = np.floor((uv + radius + 0.5) * np.array([w / width, h / height]))
-    (x0, y0), (x1, y1) = np.clip(lo, 0, [w - 1, h - 1]), np.clip(hi, 0, [w - 1, h - 1])
-    ys, xs = np.mgrid[int(y0):int(y1) + 1, int(x0):int(x1) + 1]  # cell indices
-    ys, xs = ys.ravel(), xs.ravel()
-    if exclude is not None:
-        px, py = cell_centre_pixels(xs, ys, w, h, width, height)
-        free = ~np.asarray(exclude, bool)[py, px]
-        ys, xs = ys[free], xs[free]
-    if len(xs) == 0:
-        return 0.0
-    ag, _ = agent_like(np.asarray(features, np.float32)[ys, xs], bank, tau_sem)
-    return float(ag.mean())
-
-
 def trajectory_poses(state: np.ndarray, *, min_speed: float, extend: int,
                      in_view, fallback_yaw: float, evidence=None) -> tuple[np.ndarray, np.ndarray]:
     """Per-frame box poses from a smoothed track.
 
     state [T, 6] (x, y, z, vx, vy, vz per frame; NaN outside the track's first..last hit). Inside the track's
     life the centre is the smoothed position (coasted across gaps); up to ``extend`` frames before / after it the
-    centre is extrapolated with the end velocity and the frame counts as valid while ``in_view(frame, centre)``
-    holds. With ``evidence(frame, centre) -> bool`` the extrapolation goes on past ``extend`` frames for as long
-    as every frame is in view and shows evidence of the agent there (agent-like features where its box would
-    be: the clusters only saw the car where its background gradients stood out, the features see it wherever
-    it is visible). Beyond that the pose is held constant (invalid). The yaw follows the smoothed ground velocity (x, z)
-    where the speed is at least ``min_speed`` per frame (directions opposing the median one are flipped: a noisy
-    slow track must not turn around), is held from the nearest such frame elsewhere, and is ``fallback_yaw``
-    when the track never moves that fast.
+    centre is extrapolated with the end velocity and the frame counts as valid while ``in_view(frame,
+    world_from_box [4, 4]) -> bool`` holds (the box there, at that frame's yaw). With ``evidence(frame,
+    world_from_box) -> bool`` the extrapolation goes on past ``extend`` frames for as long as every frame is in
+    view and shows evidence of the agent there (agent-like features where its box would be: the clusters only
+    saw the car where its background gradients stood out, the features see it wherever it is visible). Beyond
+    that the pose is held constant (invalid). The yaw follows the smoothed ground velocity (x, z) where the speed
+    is at least ``min_speed`` per frame (directions opposing the median one are flipped: a noisy slow track must
+    not turn around), is held from the nearest such frame elsewhere, and is ``fallback_yaw`` when the track never
+    moves that fast.
     Returns world_from_box [T, 4, 4] and valid [T] bool."""
     n = len(state)
-    life = np.flatnonzero(~np.isnan(state[:, 0]))
-    first, last = int(life[0]), int(life[-1])
-    centre = np.full((n, 3), np.nan)
-    centre[first:last + 1] = state[first:last + 1, :3]
-    valid = np.zeros(n, bool)
-    valid[first:last + 1] = True
-    for direction, end in ((-1, first), (1, last)):
-        v = state[end, 3:]
-        i, steps, held = end + direction, 1, extend
-        while 0 <= i < n:
-            c = state[end, :3] + v * direction * steps
-            seen = in_view(i, c)
-            if steps <= extend and seen:
-                valid[i] = True
-            elif steps > extend and held == steps - 1 and seen and evidence is not None and evidence(i, c):
-                valid[i], held = True, steps
-            centre[i] = c if steps <= held else state[end, :3] + v * direction * held
-            i, steps = i + direction, steps + 1
     speed = np.linalg.norm(state[:, [3, 5]], axis=1)  # [T], NaN outside life
     moving = np.flatnonzero(np.nan_to_num(speed) >= min_speed)
     yaw = np.full(n, fallback_yaw)
@@ -452,6 +413,25 @@ def trajectory_poses(state: np.ndarray, *, min_speed: float, extend: int,
             yaw[i] = yaw_i if unit[j] @ ref >= 0 or len(moving) == 1 else yaw_from_heading(*-unit[j])
         nearest = moving[np.abs(np.arange(n)[:, None] - moving[None]).argmin(1)]
         yaw = yaw[nearest]
+    life = np.flatnonzero(~np.isnan(state[:, 0]))
+    first, last = int(life[0]), int(life[-1])
+    centre = np.full((n, 3), np.nan)
+    centre[first:last + 1] = state[first:last + 1, :3]
+    valid = np.zeros(n, bool)
+    valid[first:last + 1] = True
+    for direction, end in ((-1, first), (1, last)):
+        v = state[end, 3:]
+        i, steps, held = end + direction, 1, extend
+        while 0 <= i < n:
+            c = state[end, :3] + v * direction * steps
+            pose = pose_from_yaw(c, yaw[i])
+            seen = in_view(i, pose)
+            if steps <= extend and seen:
+                valid[i] = True
+            elif steps > extend and held == steps - 1 and seen and evidence is not None and evidence(i, pose):
+                valid[i], held = True, steps
+            centre[i] = c if steps <= held else state[end, :3] + v * direction * held
+            i, steps = i + direction, steps + 1
     poses = np.stack([pose_from_yaw(centre[i], yaw[i]) for i in range(n)])
     return poses, valid
 
