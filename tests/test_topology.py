@@ -18,8 +18,9 @@ from agg.priors.metric_scale import estimate_metric_scale
 from agg.synth.corrupt import NoiseConfig
 from agg.synth.scene import SceneConfig
 from agg.synth.suite import generate, load_gt_extras, write_bundle
-from agg.train.topology import TopologyConfig, TopologyEvolution
+from agg.train.topology import TopologyConfig, TopologyEvolution, frame_seconds
 from agg.train.topology_motion import MotionConfig
+from agg.train.topology_spawn import box_speed
 from agg.train.topology_track import visible_surface_offset
 
 LRS = {"means": 1e-3, "log_scales": 5e-3, "quats": 1e-3, "opacity_logits": 5e-2, "sh": 5e-3}
@@ -32,12 +33,14 @@ def _clip(path, scene: SceneConfig, noise: NoiseConfig, budget: int) -> tuple[Sc
     return bundle, SceneGraph.from_bundle(bundle, InitConfig(background_budget=budget, seed=0))
 
 
-def _topology(bundle: SceneBundle, images: np.ndarray | None = None, **overrides) -> TopologyEvolution:
+def _topology(bundle: SceneBundle, images: np.ndarray | None = None, seconds: float | None = None,
+              **overrides) -> TopologyEvolution:
     """The evolution of a bundle; with ``images`` ([T, H, W, 3] uint8, e.g. the bundle's frames) a planned spawn
-    must move in them (topology_motion), as in training."""
+    must move in them (topology_motion), as in training. A planned spawn's speed is read with the bundle's frame
+    interval, as in training, or with ``seconds`` per frame."""
     return TopologyEvolution(TopologyConfig(**overrides), bundle.semantics, bundle.intrinsics, bundle.width,
                              bundle.height, bundle.scale, depth=bundle.dense_depth, reserved_ids=bundle.tracklets.ids,
-                             images=images)
+                             images=images, frame_seconds=seconds or frame_seconds(bundle.timestamps_us))
 
 
 def _frames(bundle: SceneBundle) -> np.ndarray:
@@ -452,3 +455,29 @@ def test_a_track_that_floats_above_the_road_is_not_spawned(tmp_path):
     assert reports["off"]["spawned"] and not reports["off"]["floating"]
     assert not reports["on"]["spawned"]
     assert len(reports["on"]["floating"]) == 1 and 4.0 < reports["on"]["floating"][0] < 6.0, reports["on"]["floating"]
+
+
+def test_a_track_faster_than_any_road_user_is_not_spawned(tmp_path):
+    """The missed-car clip (10 frames a second; the car drives about 10 m/s) read as if its frames were 100 times
+    closer in time: the car's track now moves at about 1,000 m/s, over ``max_speed_mps``, and spawns no agent;
+    the report says how fast it was. At the clip's own frame interval the same track spawns (the test above)."""
+    bundle, graph = _clip(tmp_path / "fast", SceneConfig(seed=0, frames=8, width=160, height=96, pedestrians=0),
+                          NoiseConfig(missed=1), budget=6000)
+    seconds = frame_seconds(bundle.timestamps_us)
+    assert seconds == pytest.approx(0.1)
+    topo = _topology(bundle, seconds=seconds / 100.0)
+    opt = _fit_background(bundle, graph, topo, steps=80)
+    report = topo.evolve(graph, opt, iteration=80)
+    assert not report["spawned"]
+    assert len(report["fast"]) == 1 and 300.0 < report["fast"][0] < 3000.0, report["fast"]
+
+
+def test_box_speed_reads_consecutive_valid_frames_and_frame_seconds_the_timestamps():
+    poses = np.tile(np.eye(4), (6, 1, 1))  # [T, 4, 4]: 1 unit a frame along x, 3 units at the jump to frame 5
+    poses[:, 0, 3] = [0.0, 1.0, 2.0, 3.0, 4.0, 7.0]
+    valid = np.array([True, True, True, False, True, True])  # frames 2-4 are no pair: their gap is skipped
+    assert box_speed(poses, valid, 0.1) == pytest.approx(10.0)  # steps 1, 1 and 3: the median 1 unit in 0.1 s
+    assert box_speed(poses, valid, None) is None
+    assert box_speed(poses, np.array([True, False, True, False, True, False]), 0.1) is None
+    assert frame_seconds([0, 40_000, 80_000, 120_000]) == pytest.approx(0.04)
+    assert frame_seconds([0]) is None and frame_seconds(None) is None and frame_seconds([0, 0, 0]) is None

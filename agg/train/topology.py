@@ -107,6 +107,8 @@ class TopologyConfig:
     extend_frames: int = 2  # spawned validity extends this many frames past the track while the box is in view
     extend_agent_fraction: float = 0.5  # ... and further while agent-like features are where its box would be
     min_speed_m: float = 0.05  # per frame: slower tracks take their yaw from the cluster's ground principal axis
+    max_speed_mps: float | None = 70.0  # a planned spawn whose box moves faster than this (m/s, median over its
+    # valid frames; 250 km/h) is no road user and is dropped; None, or a clip without frame times: no check
     rigid_size_m: tuple[float, float, float] = (4.5, 1.8, 1.6)  # (l, w, h) of a spawned agent when the graph
     nonrigid_size_m: tuple[float, float, float] = (0.7, 0.7, 1.75)  # has no instance of its class to copy
     spawn_box_slack: float | None = None  # a spawned agent's box is that size grown by this fraction (where it is
@@ -149,6 +151,16 @@ def _box_poses(node) -> np.ndarray:
     return poses.cpu().numpy().astype(np.float64)
 
 
+def frame_seconds(timestamps_us) -> float | None:
+    """The median interval (s) between consecutive frame timestamps [T] (microseconds); None without two frames
+    or without increasing times."""
+    ts = np.asarray(timestamps_us if timestamps_us is not None else [], np.float64).reshape(-1)
+    steps = np.diff(ts)
+    if len(steps) == 0 or not np.all(np.isfinite(steps)) or np.median(steps) <= 0:
+        return None
+    return float(np.median(steps)) * 1e-6
+
+
 class TopologyEvolution:
     """Gradient statistics of the background plus Algorithm 1 on a ``SceneGraph`` (see the module doc).
 
@@ -159,13 +171,17 @@ class TopologyEvolution:
     spawned agent (e.g. every bundle tracklet id); num_frames: T (default: the features' or intrinsics' T);
     dynamic: [T, H, W] bool prior dynamic masks; images: [T, H, W, 3] frames at the training resolution (uint8, or
     float in [0, 1]) and depth_confidence: [T, H, W] the depth prior's confidence, for the motion test of a planned
-    spawn (``topology_motion``; without images no spawn is tested for motion)."""
+    spawn (``topology_motion``; without images no spawn is tested for motion); frame_seconds: the clip's frame
+    interval, for the speed check of a planned spawn (``max_speed_mps``; None: no check)."""
 
     def __init__(self, config: TopologyConfig, semantics, intrinsics, width: int, height: int, scale: float = 1.0,
                  depth: np.ndarray | None = None, reserved_ids=(), num_frames: int | None = None,
                  dynamic: np.ndarray | None = None, box_half: dict[int, np.ndarray] | None = None,
-                 images: np.ndarray | None = None, depth_confidence: np.ndarray | None = None):
+                 images: np.ndarray | None = None, depth_confidence: np.ndarray | None = None,
+                 frame_seconds: float | None = None):
         self.config = config
+        # seconds from one frame to the next (the speed check of a planned spawn); None: unknown, no check
+        self.frame_seconds = float(frame_seconds) if frame_seconds is not None and frame_seconds > 0 else None
         self.images = images
         self.depth_confidence = depth_confidence
         # track id -> box half extents [3] (scene units): the tracklets' sizes, then each spawned agent's box. The
@@ -363,7 +379,8 @@ class TopologyEvolution:
         changed = pruned_nodes | demoted_nodes | ({"background"} if n_bg > n_old else set())
         report = {"iteration": iteration, "reassigned": 0, "spawned": [], "spawned_classes": [],
                   "pruned": pruned + demoted, "demoted": demoted, "candidates": 0, "clusters": 0, "tracks": 0,
-                  "track_runs": [], "floating": [], "static": [], "moving": [], "boxed": [], "silhouette": [0, 0],
+                  "track_runs": [], "floating": [], "fast": [], "static": [], "moving": [], "boxed": [],
+                  "silhouette": [0, 0],
                   "reanchored": anchored, "structure_changed": bool(pruned or demoted), "new_nodes": [],
                   "rows_changed": sorted(changed), "bg_src": src}
         if self.sum is None or not bool((self.count > 0).any()):

@@ -1,16 +1,17 @@
-"""Spawn planning of adaptive topology evolution (Algorithm 1, the unmatched clusters): which tracks become new
-agents, with what pose prior, validity and member Gaussians. ``TopologyEvolution.evolve`` calls ``plan_spawns``
-and does the graph surgery itself.
+"""Spawn planning of adaptive topology evolution (Algorithm 1, the unmatched clusters): which tracks become new agents,
+with what pose prior, validity and member Gaussians. ``TopologyEvolution.evolve`` calls ``plan_spawns`` and does the
+graph surgery itself.
 
-The unmatched cluster centres are tracked over the frames that had gradient statistics (a held-out frame never
-has any, and a track coasts through it without a miss); the fragments of one object (two clusters in one frame,
-a track that restarts after two frames without a cluster) are joined (``topology_track.stitch``); a joined track
-whose longest run over those frames reaches ``tau_life`` is planned, after its outlying centroids are dropped
-(``topology_track.drop_outliers``), unless its box floats above the road (``road_contact``) or does not move in
-the video (``topology_motion``). Its member rows are its clusters' Gaussians; with ``spawn_box_slack`` set (off by
-default) only those inside its box (the guessed size grown by that slack) at the frame each is canonicalised at
-(``topology_track.inside_box``), the others staying in the background, and a plan left with fewer than
-``min_agent_gaussians`` rows is dropped (``spawn_box_rows="all"``: every row, those outside pulled onto the box).
+The unmatched cluster centres are tracked over the frames that had gradient statistics (a held-out frame never has
+any, and a track coasts through it without a miss); the fragments of one object (two clusters in one frame, a track
+that restarts after two frames without a cluster) are joined (``topology_track.stitch``); a joined track whose
+longest run over those frames reaches ``tau_life`` is planned, after its outlying centroids are dropped
+(``topology_track.drop_outliers``), unless its box moves faster than any road user (``box_speed`` over
+``max_speed_mps``), floats above the road (``road_contact``) or does not move in the video (``topology_motion``).
+Its member rows are its clusters' Gaussians; with ``spawn_box_slack`` set (off by default) only those inside its box
+(the guessed size grown by that slack) at the frame each is canonicalised at (``topology_track.inside_box``), the
+others staying in the background, and a plan left with fewer than ``min_agent_gaussians`` rows is dropped
+(``spawn_box_rows="all"``: every row, those outside pulled onto the box).
 """
 
 from __future__ import annotations
@@ -89,6 +90,10 @@ def plan_spawns(evo, graph, unmatched: list[list[dict]], means: np.ndarray, take
             state, centroids, cam_centres, half, in_view, fallback, meas_sigma=params.meas_sigma,
             accel_sigma=cfg.smooth_accel_sigma_m * u, init_vel_sigma=params.init_vel_sigma,
             min_speed=cfg.min_speed_m * u, extend=cfg.extend_frames, evidence=evidence, in_image=in_image)
+        speed = box_speed(poses, valid, evo.frame_seconds)  # scene units per second, or None
+        if speed is not None and cfg.max_speed_mps is not None and speed / u > cfg.max_speed_mps:
+            report["fast"].append(round(speed / u, 1))  # faster than any road user: no agent
+            continue
         contact = road_contact(evo, poses, valid, half, cfw)
         if contact is not None and contact[0] > 1.0:  # its box floats above (or sinks below) the road: no agent
             report["floating"].append(round(contact[1], 2))
@@ -115,6 +120,17 @@ def plan_spawns(evo, graph, unmatched: list[list[dict]], means: np.ndarray, take
     # the longest run of each (joined) track over the frames with statistics, longest first
     report["track_runs"] = sorted(runs, reverse=True)[:8]
     return plans
+
+
+def box_speed(poses: np.ndarray, valid: np.ndarray, frame_seconds: float | None) -> float | None:
+    """Median speed (scene units per second) of a box with poses [T, 4, 4] over its consecutive valid [T] frames;
+    None without a frame interval or without two consecutive valid frames."""
+    idx = np.flatnonzero(valid)
+    consecutive = np.diff(idx) == 1  # [V - 1]
+    if frame_seconds is None or not consecutive.any():
+        return None
+    steps = np.linalg.norm(poses[idx[1:], :3, 3] - poses[idx[:-1], :3, 3], axis=1)[consecutive]
+    return float(np.median(steps)) / frame_seconds
 
 
 def silhouette_or(evo, t: int, centroid: np.ndarray, camera_from_world: np.ndarray, half: np.ndarray,

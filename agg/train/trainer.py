@@ -34,8 +34,8 @@ from agg.train.tick_tock import GROUPS, TickTockSchedule, set_trainable
 
 # what the topology log keeps of each evolution's report
 BOOSTED = ("means", "tau", "rate")  # the agent parameter groups whose rates agent_boost raises
-LOG_KEYS = ("iteration", "candidates", "clusters", "tracks", "track_runs", "floating", "static", "moving", "boxed",
-            "silhouette", "reassigned", "spawned", "pruned", "demoted", "reanchored")
+LOG_KEYS = ("iteration", "candidates", "clusters", "tracks", "track_runs", "floating", "fast", "static", "moving",
+            "boxed", "silhouette", "reassigned", "spawned", "pruned", "demoted", "reanchored")
 
 
 class Cancelled(Exception):
@@ -110,7 +110,7 @@ class Trainer:
         if b is None or b.semantics is None or b.semantics.prototypes is None:
             return None
         from agg.train.data import resize_depth
-        from agg.train.topology import TopologyEvolution
+        from agg.train.topology import TopologyEvolution, frame_seconds
         from agg.train.topology_track import tracklet_half_extents
 
         depth = resize_depth(b.dense_depth, self.data.width, self.data.height) if b.has("depth_dense") else None
@@ -124,7 +124,8 @@ class Trainer:
         return TopologyEvolution(self.cfg.evolution.scaled(self.cfg.scale), b.semantics, self.data.K.cpu().numpy(),
                                  self.data.width, self.data.height, self.metric.metres_per_unit,
                                  depth=depth, reserved_ids=ids, dynamic=dynamic,
-                                 box_half=tracklet_half_extents(b.tracklets), images=images, depth_confidence=conf)
+                                 box_half=tracklet_half_extents(b.tracklets), images=images, depth_confidence=conf,
+                                 frame_seconds=frame_seconds(b.timestamps_us))
 
     def _lr_scale(self) -> float:
         """Pose-rate factor 30000 / iterations, at most 15 (the balanced preset's): below ~2,000 iterations a
