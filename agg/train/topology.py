@@ -37,8 +37,9 @@ A static background smears a moving car along its path, and the smear's own mean
 benchmark they put the track 2.3 m behind it by the last frame; the pixels and the depth of frame t do not lag.
 Frames without statistics (held out) neither end a track nor break its run; the fragments of one object are
 joined and its outlying centroids dropped (``topology_spawn``); a track with at least ``tau_life`` consecutive
-hits whose box stands on the road (``topology_spawn.road_contact``) and moves in the video against the refined
-cameras (``topology_motion``) spawns a new rigid agent (``graph.rigid``, created when absent; the report's
+hits whose box moves no faster than a road user (``max_speed_mps``, ``topology_spawn.box_speed``), stands on the
+road (``topology_spawn.road_contact``) and moves in the video against the refined cameras (``topology_motion``)
+spawns a new rigid agent (``graph.rigid``, created when absent; the report's
 ``spawned_classes`` says what the features suggest): its Gaussians are the track's cluster Gaussians (those not
 reassigned), each moved into the canonical frame with the track pose of the frame (among those it was clustered in)
 whose centre is nearest; its pose prior is the track, each frame's centroid read off the agent's semantic
