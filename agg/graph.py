@@ -21,6 +21,7 @@ import torch
 from torch import Tensor, nn
 
 from agg.io.bundle import SceneBundle
+from agg.io.video import intrinsics_at
 from agg.nodes.camera import CameraNode
 from agg.nodes.gaussians import GaussianParams
 from agg.nodes.init import InitConfig, box_pose, init_from_bundle
@@ -157,7 +158,7 @@ class SceneGraph(nn.Module):
         else:
             view = {"world_from_camera": torch.as_tensor(world_from_camera, dtype=torch.float32)}
         if K is None:
-            K = self.K[min(frame, self.K.shape[0] - 1)]  # noqa: N806
+            K = intrinsics_at(self.K, frame)  # noqa: N806
         if colors is None:
             kwargs["sh"] = g["sh"]
         return rasterize(g["means"], g["quats"], g["scales"], g["opacities"], colors, K=K,

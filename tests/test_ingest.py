@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 av = pytest.importorskip("av")
 cv2 = pytest.importorskip("cv2")
@@ -16,8 +17,8 @@ cv2 = pytest.importorskip("cv2")
 from agg.io.bundle import SceneBundle  # noqa: E402
 from agg.io.errors import (IngestError, NoDecodableFramesError, NotAVideoError, TooFewFramesError,  # noqa: E402
                            TooManyPixelsError, TruncatedVideoError, TruncatedVideoWarning)
-from agg.io.video import (FrameProcessor, IngestConfig, ingest, ingest_to_bundle, load_opencv_calibration,  # noqa: E402
-                          read_video, scale_intrinsics)
+from agg.io.video import (FrameProcessor, IngestConfig, ingest, ingest_to_bundle, intrinsics_at,  # noqa: E402
+                          load_opencv_calibration, read_video, scale_intrinsics)
 
 W, H, N = 64, 48, 10
 UDACITY = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "udacity_highway"
@@ -145,6 +146,14 @@ def test_resize_scales_intrinsics_with_pixel_centres(tmp_path):
     # K calibrated at another resolution is rescaled to the source first
     r3 = read_video(path, IngestConfig(K=scale_intrinsics(K, (W, H), (128, 96)), calib_size=(128, 96)))
     np.testing.assert_allclose(r3.K, K, atol=1e-12)
+
+
+def test_intrinsics_at_shares_one_K_and_indexes_per_frame_K():
+    shared = np.eye(3)[None] * 2.0  # [1, 3, 3]
+    per_frame = np.stack([np.eye(3) * (i + 1) for i in range(4)])  # [4, 3, 3]
+    assert np.array_equal(intrinsics_at(shared, 3), shared[0])
+    assert np.array_equal(intrinsics_at(per_frame, np.int64(2)), per_frame[2])
+    assert torch.equal(intrinsics_at(torch.as_tensor(per_frame), torch.tensor(1)), torch.as_tensor(per_frame[1]))
 
 
 def test_undistortion_straightens_projected_points(tmp_path):

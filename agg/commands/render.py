@@ -10,6 +10,7 @@ import numpy as np
 import torch
 
 from agg.eval.interpolate import interpolate_pose
+from agg.io.video import intrinsics_at
 
 
 def add_parser(subparsers) -> None:
@@ -108,7 +109,7 @@ def run(args: argparse.Namespace) -> int:
             cam = np.array(cam, np.float64)
             if shift is not None:
                 cam[:3, 3] += cam[:3, :3] @ shift
-            K = scene.K[min(lo, len(scene.K) - 1)]  # noqa: N806
+            K = intrinsics_at(scene.K, lo)  # noqa: N806
             res = scene.render(t_us, cam, K, scene.width, scene.height, outputs=(output,))
             images.append(_image(res, args.what))
         _write(Path(args.output), images, args.fps)

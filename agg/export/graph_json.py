@@ -13,6 +13,8 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 
+from agg.io.video import intrinsics_at
+
 SCHEMA = "agg.scene_graph"
 VERSION = 1
 
@@ -93,7 +95,7 @@ def scene_graph_json(graph, timestamps_us: Sequence[int], meta: dict | None = No
     with torch.no_grad():
         cams = graph.camera.world_from_camera().detach()  # [T, 4, 4]
     K = graph.K.detach().cpu()  # noqa: N806  [T or 1, 3, 3]
-    intrinsics = [clean(K[min(i, K.shape[0] - 1)], "intrinsics") for i in range(t)]
+    intrinsics = [clean(intrinsics_at(K, i), "intrinsics") for i in range(t)]
     nodes = [{"id": "camera", "type": "camera", "num_frames": t},
              {"id": "background", "type": "background", "n_gaussians": len(graph.background)}]
     if getattr(graph, "sky", None) is not None:

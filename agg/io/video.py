@@ -107,6 +107,11 @@ def scale_intrinsics(K: np.ndarray, from_size: tuple[int, int], to_size: tuple[i
     return out
 
 
+def intrinsics_at(K, frame: int):  # noqa: N803
+    """K [3, 3] of ``frame`` from intrinsics [T or 1, 3, 3] (numpy or torch): a shared K serves every frame."""
+    return K[min(int(frame), len(K) - 1)]
+
+
 def guess_intrinsics(width: int, height: int) -> np.ndarray:
     """Fallback K when nothing is known: fx = fy = 0.8 max(W, H) (~64 deg horizontal FOV), centred."""
     f = 0.8 * max(width, height)

@@ -48,7 +48,7 @@ import torch
 from torch import Tensor
 
 from agg.eval.nvs import fit_image
-from agg.io.video import scale_intrinsics
+from agg.io.video import intrinsics_at, scale_intrinsics
 from agg.train.losses import photometric_loss, semantic_attention_loss
 
 
@@ -85,7 +85,7 @@ def level_inputs(graph, images: Tensor, attention: Tensor | None, frames: Sequen
             if attention is not None else None)
     intrinsics = {}  # frame -> [3, 3] at this level
     for f in frames:
-        k = graph.K[min(f, graph.K.shape[0] - 1)]
+        k = intrinsics_at(graph.K, f)
         k_level = scale_intrinsics(k.detach().cpu().numpy(), (width, height), (w, h))
         intrinsics[f] = torch.as_tensor(k_level, dtype=k.dtype, device=k.device)
     return targets, maps, intrinsics

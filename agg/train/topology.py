@@ -67,6 +67,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from agg.io.video import intrinsics_at
 from agg.nodes.gaussians import GaussianParams, append_rows
 from agg.priors.tracklet_ground import ground_planes
 from agg.train import topology_anchor as ta
@@ -255,7 +256,7 @@ class TopologyEvolution:
         where there is no depth) and whether that pixel lies in the prior dynamic masks, i.e. on a known agent
         (all False without masks)."""
         cfg = self.config
-        K = self.K[min(frame, len(self.K) - 1)]  # noqa: N806
+        K = intrinsics_at(self.K, frame)  # noqa: N806
         uv, z, vis = tt.project(means, camera_from_world, K, self.width, self.height, cfg.near_m * self.unit)
         d = np.zeros(len(means), np.float32)
         surface = np.ones(len(means), bool)

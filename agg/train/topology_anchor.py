@@ -48,6 +48,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from agg.io.video import intrinsics_at
 from agg.render.rasterize import rasterize
 from agg.train import topology_track as tt
 
@@ -85,7 +86,7 @@ def instance_surface(graph, node, j: int, frame: int, min_alpha: float = 0.05
         rows = node.instance == j
         if not bool(rows.any()):
             return None
-        k = graph.K[min(frame, graph.K.shape[0] - 1)]
+        k = intrinsics_at(graph.K, frame)
         viewmat = graph.camera.camera_from_world(torch.tensor([frame]))[0]
         ones = torch.ones(int(rows.sum()), 1, device=g["means"].device)
         out = rasterize(g["means"][rows], g["quats"][rows], g["scales"][rows], g["opacities"][rows], ones, K=k,
@@ -120,7 +121,7 @@ def estimate_offset(graph, node, j: int, half: np.ndarray, near: float, axes=(1.
         centroids.append((local * w[:, None]).sum(0) / w.sum())
         cameras.append((np.linalg.inv(cfw[t])[:3, 3] - wfb[:3, 3]) @ wfb[:3, :3])
         cam_from_box = cfw[t] @ wfb
-        k = graph.K[min(int(t), graph.K.shape[0] - 1)].detach().cpu().numpy().astype(np.float64)
+        k = intrinsics_at(graph.K, t).detach().cpu().numpy().astype(np.float64)
         inside.append(lambda p, m=cam_from_box, k=k: tt.project(p, m, k, graph.width, graph.height, near)[2])
     if not centroids:
         return None

@@ -34,6 +34,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from agg.io.video import intrinsics_at, scale_intrinsics
 from agg.priors.masks import MaskConfig, dynamic_masks
 from agg.train import topology_track as tt
 
@@ -99,7 +100,7 @@ def moving_share(residual: dict[int, np.ndarray], known: np.ndarray | None, pose
     for t, r in residual.items():
         if not valid[t]:
             continue
-        rect = box_rect(poses[t], half, camera_from_world[t], K[min(t, len(K) - 1)], width, height, near)
+        rect = box_rect(poses[t], half, camera_from_world[t], intrinsics_at(K, t), width, height, near)
         if rect is None:
             continue
         u0, v0, u1, v1 = rect
@@ -131,7 +132,6 @@ def _analysis_inputs(evo, frames: np.ndarray, camera_from_world: np.ndarray) -> 
     """The residuals of ``frames`` at the analysis size (training size, at most ``max_width`` wide), with the
     intrinsics [T or 1, 3, 3], the size (w, h) and the known-agent masks (or None) at that size. The clip's
     intrinsics are taken as constant (the first training frame's) for the flow; boxes use each frame's own."""
-    from agg.io.video import scale_intrinsics
     from agg.train.data import resize_depth, resize_images, training_size
 
     w, h, _ = training_size(evo.width, evo.height, evo.config.motion.max_width)
@@ -142,6 +142,6 @@ def _analysis_inputs(evo, frames: np.ndarray, camera_from_world: np.ndarray) -> 
         conf = None if conf is None else resize_depth(conf, w, h)
         known = None if known is None else resize_depth(known.astype(np.float32), w, h) > 0.5
         K = np.stack([scale_intrinsics(k, (evo.width, evo.height), (w, h)) for k in K])  # noqa: N806
-    res = residuals(images, K[min(int(frames[0]), len(K) - 1)] if len(frames) else K[0], camera_from_world, depth,
+    res = residuals(images, intrinsics_at(K, frames[0]) if len(frames) else K[0], camera_from_world, depth,
                     frames, conf)
     return {"residual": res, "K": K, "size": (w, h), "known": known}

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from agg.io.video import intrinsics_at
 from agg.priors.kalman import smooth_sequence
 from agg.priors.tracklet_ground import height_above_road
 from agg.train import topology_motion as tm
@@ -49,7 +50,7 @@ def plan_spawns(evo, graph, unmatched: list[list[dict]], means: np.ndarray, take
     motion_cache: dict = {}  # the flow residuals of this evolution's cameras, computed for the first tested spawn
 
     def in_image(i: int, points: np.ndarray) -> np.ndarray:
-        k = evo.K[min(i, len(evo.K) - 1)]
+        k = intrinsics_at(evo.K, i)
         return tt.project(points, cfw[i], k, evo.width, evo.height, cfg.near_m * u)[2]
 
     for group in groups:
@@ -140,7 +141,7 @@ def silhouette_or(evo, t: int, centroid: np.ndarray, camera_from_world: np.ndarr
     where there is none. Counts both in ``report["silhouette"]`` ([from the silhouette, kept]). ``frames``:
     frame -> ``FrameCells``, filled on first use."""
     cfg = evo.config
-    k = evo.K[min(t, len(evo.K) - 1)]
+    k = intrinsics_at(evo.K, t)
     if t not in frames:
         frames[t] = ts.frame_cells(evo.semantics.features[t], evo.bank, cfg.tau_sem, evo.depth[t], camera_from_world,
                                    k, None if evo.dynamic is None else evo.dynamic[t])
@@ -169,7 +170,7 @@ def road_contact(evo, poses: np.ndarray, valid: np.ndarray, half: np.ndarray,
         pc = camera_from_world[t, :3, :3] @ bottom + camera_from_world[t, :3, 3]  # [3]
         if pc[2] <= cfg.near_m * u:
             continue
-        h = float(height_above_road(planes[t], evo.K[min(t, len(evo.K) - 1)], pc[None])[0])
+        h = float(height_above_road(planes[t], intrinsics_at(evo.K, t), pc[None])[0])
         ratios.append(abs(h) / ((cfg.ground_tolerance_m + cfg.ground_tolerance_per_m * pc[2] / u) * u))
         heights.append(h / u)
     return (float(np.median(ratios)), float(np.median(heights))) if ratios else None

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from agg.io.video import intrinsics_at
 from agg.train import topology_track as tt
 
 
@@ -74,13 +75,10 @@ def box_visibility(evo, camera_from_world: np.ndarray, half: np.ndarray):
     cfg = evo.config
     near = cfg.near_m * evo.unit
 
-    def intrinsics(i: int) -> np.ndarray:
-        return evo.K[min(i, len(evo.K) - 1)]
-
     def evidence(i: int, pose: np.ndarray) -> bool:
         if evo.bank is None:
             return False
-        k = intrinsics(i)
+        k = intrinsics_at(evo.K, i)
         rect = box_image_rect(pose, half, camera_from_world[i], k, evo.width, evo.height, near)
         if rect is None:
             return False
@@ -92,8 +90,8 @@ def box_visibility(evo, camera_from_world: np.ndarray, half: np.ndarray):
         return frac >= cfg.extend_agent_fraction
 
     def in_view(i: int, pose: np.ndarray) -> bool:
-        centre_in = tt.project(pose[None, :3, 3], camera_from_world[i], intrinsics(i), evo.width, evo.height,
-                               near)[2][0]
+        k = intrinsics_at(evo.K, i)
+        centre_in = tt.project(pose[None, :3, 3], camera_from_world[i], k, evo.width, evo.height, near)[2][0]
         return bool(centre_in) or evidence(i, pose)
 
     return in_view, evidence
