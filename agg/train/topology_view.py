@@ -75,7 +75,15 @@ def box_visibility(evo, camera_from_world: np.ndarray, half: np.ndarray):
     cfg = evo.config
     near = cfg.near_m * evo.unit
 
+    memo: dict[tuple[int, bytes], bool] = {}  # by (frame, pose): in_view and then trajectory_poses may ask
+
     def evidence(i: int, pose: np.ndarray) -> bool:
+        key = (i, np.ascontiguousarray(pose).tobytes())
+        if key not in memo:
+            memo[key] = read_evidence(i, pose)
+        return memo[key]
+
+    def read_evidence(i: int, pose: np.ndarray) -> bool:
         if evo.bank is None:
             return False
         k = intrinsics_at(evo.K, i)
