@@ -24,6 +24,7 @@ from agg.nodes.gaussians import keep_rows
 from agg.io.bundle import SceneBundle
 from agg.priors.metric_scale import MetricScale, estimate_metric_scale
 from agg.train.camera_tracking import track_cameras
+from agg.train.checkpoint import load_state, restore, save_state, trainer_state
 from agg.train.config import TrainConfig
 from agg.train.data import TrainData
 from agg.train.densify import DensifyConfig, Densifier, highest
@@ -446,47 +447,18 @@ class Trainer:
             self.save(path)
 
     def state_dict(self) -> dict:
-        return {"graph": self.graph.state(), "iteration": self.iteration, "history": list(self.history),
-                "spawned": list(self.spawned), "pruned": list(self.pruned), "topology_log": list(self.topology_log),
-                "tracking_log": list(self.tracking_log), "loss_keys": dict(self.loss_keys),
-                "generator": self.generator.get_state(), "order": list(self.order),
-                "optimizers": {k: o.state_dict() for k, o in self.optimizers.items()},
-                "densifier": self.densifier.state_dict() if self.densifier is not None else None,
-                "topology": self.topology.state_dict() if self.topology is not None else None,
-                "extent": self.extent, "config": self.cfg.as_dict()}
+        return trainer_state(self)
 
     def save(self, path: Path) -> None:
-        path = Path(path)
-        tmp = path.with_suffix(".tmp")
-        torch.save(self.state_dict(), tmp)
-        tmp.replace(path)  # atomic: a reader never sees a half-written checkpoint
+        save_state(self.state_dict(), path)
 
     @classmethod
     def resume(cls, path: Path, data: TrainData, config: TrainConfig, bundle: SceneBundle | None = None,
                **kwargs) -> "Trainer":
-        # the graph is rebuilt on the CPU, then moved to the device training goes on (that of ``data``): a
-        # checkpoint written on one device resumes on another; optimiser moments follow their parameters
-        device = data.images.device
-        state = torch.load(path, map_location="cpu", weights_only=False)
-        graph = SceneGraph.from_state(state["graph"])
-        trainer = cls(graph, data, config, bundle, **kwargs)
-        trainer.extent = state["extent"]
-        trainer.build_optimizers()
-        for k, o in trainer.optimizers.items():
-            o.load_state_dict(state["optimizers"][k])
-        trainer.iteration = state["iteration"]
-        trainer.history = list(state["history"])
-        trainer.spawned, trainer.pruned = list(state["spawned"]), list(state["pruned"])
-        trainer.topology_log = list(state.get("topology_log", []))
-        trainer.tracking_log = list(state.get("tracking_log", []))
-        trainer.loss_keys = dict(state.get("loss_keys", {}))
-        trainer.generator.set_state(state["generator"])
-        trainer.order = list(state["order"])
-        if trainer.densifier is not None and state["densifier"] is not None:
-            trainer.densifier.load_state_dict(state["densifier"])
-            trainer.densifier.scene_extent = trainer.extent
-        if trainer.topology is not None and state["topology"] is not None:
-            trainer.topology.load_state_dict(state["topology"], device=device)
+        """The trainer of the checkpoint at ``path``, on the device of ``data`` (agg.train.checkpoint)."""
+        state = load_state(path)
+        trainer = cls(SceneGraph.from_state(state["graph"]), data, config, bundle, **kwargs)
+        restore(trainer, state)
         return trainer
 
 
