@@ -103,6 +103,9 @@ def describe(event: dict) -> tuple[str, str] | None:
         return "writing preview.mp4", ""
     if event.get("iteration") is not None:
         parts = [f"it {event['iteration']}/{event.get('total', '?')}"]
+        tracking = event.get("tracking")
+        if isinstance(tracking, dict):  # a camera-tracking round: the iteration count stands still meanwhile
+            parts.append(f"tracking cameras {tracking.get('step')}/{tracking.get('steps')}")
         if event.get("psnr") is not None:
             parts.append(f"PSNR {float(event['psnr']):.1f} dB")
         if event.get("n_gaussians") is not None:

@@ -162,6 +162,33 @@ def test_a_tracking_milestone_in_a_tock_waits_for_the_next_tick(bundle):
                                    for r in tr.tracking_log)
 
 
+def test_a_tracking_round_reports_each_step_and_the_eta_counts_the_rounds_ahead(bundle):
+    tracking = TrackingConfig(at=(6_000, 30_000 * 25 // 30), levels=(4, 2), steps=2)
+    cfg = replace(get_preset("tiny"), iterations=30, tracking=tracking, ablate=frozenset({"topology"}))
+    seed_everything(cfg.seed)
+    events, left = [], []
+    tr = Trainer(SceneGraph.from_bundle(bundle, cfg.init), load_train_data(bundle, cfg.max_width), cfg, bundle)
+
+    def progress(event: dict) -> None:
+        events.append(event)
+        left.append(tr.work_left(event.get("tracking", {}).get("step", 0)))
+
+    tr.progress = progress
+    assert tr.work_left() == (30, 8, 0)  # two rounds of 2 levels x 2 steps ahead
+    tr.run()
+    # each round (iterations 7 and 25) reports its 4 steps while the iteration count stands still, and the work
+    # left counts the round's own steps down
+    rounds = [(e["iteration"], e["tracking"]["step"], e["tracking"]["steps"], w)
+              for e, w in zip(events, left) if "tracking" in e]
+    assert rounds == [(7, s, 4, (23, 8 - s, 0)) for s in (1, 2, 3, 4)] + [(25, s, 4, (5, 4 - s, 0))
+                                                                          for s in (1, 2, 3, 4)]
+    assert all(e["stage"] == "train" and e["phase"] in ("tick", "joint") and e["loss"] is None and e["eta_s"] >= 0
+               for e in events if "tracking" in e)
+    train = [(e["iteration"], w) for e, w in zip(events, left) if e.get("stage") == "train" and "tracking" not in e]
+    assert train == [(10, (20, 4, 0)), (20, (10, 4, 0)), (30, (0, 0, 0))]
+    assert events[-1]["eta_s"] == 0.0 and tr.clock.seconds_per_tracking_step(6) > 0
+
+
 def test_a_cancel_inside_a_tracking_round_puts_the_cameras_back_and_the_resumed_run_is_exact(bundle, tmp_path):
     cfg = replace(get_preset("tiny"), iterations=30, tracking=TrackingConfig(at=(10_000,), levels=(4, 2), steps=3),
                   ablate=frozenset({"topology"}), densify_from=300, densify_every=300)

@@ -349,6 +349,8 @@ def test_statistics_follow_row_changes_and_checkpoints(missed, tmp_path):
     assert [i for i in range(0, 2500, 250) if cfg.due(i)] == [500, 1000, 1500, 2000]
     balanced = TopologyConfig().scaled(2000 / 30000)  # 333.3 rounds to 333: stop stays a multiple of it
     assert [i for i in range(2001) if balanced.due(i)] == [333, 666, 999, 1332]
+    assert [balanced.due_after(i, 2000) for i in (0, 333, 1000, 1332)] == [4, 3, 1, 0]
+    assert balanced.due_after(0, 700) == 2  # a shorter run stops at its end
 
 
 def test_visible_surface_offset_recovers_a_box_centre():

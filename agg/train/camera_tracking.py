@@ -118,12 +118,14 @@ def full_size_losses(graph, frames: Sequence[int], inputs, ssim_weight: float, l
 
 def track_cameras(graph, images: Tensor, frames: Sequence[int], config: TrackingConfig, extent: float, *,
                   attention: Tensor | None = None, ssim_weight: float = 0.2, lambda_sem: float = 0.8,
-                  delta: float = 1e-6, should_stop: Callable[[], bool] | None = None) -> dict | None:
+                  delta: float = 1e-6, should_stop: Callable[[], bool] | None = None,
+                  on_step: Callable[[int, int], None] | None = None) -> dict | None:
     """Refine ``graph.camera``'s corrections of ``frames`` against the frozen map; returns a report (the mean
     loss of the first and last step of each level). images [T, H, W, 3]; attention [T, H, W] (M_bg) or None.
 
     ``should_stop()`` is asked before every step; once it is True the corrections are put back as they were
     before the round and None is returned (the round can be run again from the start, e.g. after a resume).
+    ``on_step(done, total)`` is called after every step: ``done`` of the round's ``len(levels) x steps``.
     The caller freezes the Gaussians (``requires_grad`` False); only ``omega`` and ``tau`` get gradients here."""
     cam = graph.camera
     params = [cam.omega, cam.tau]
@@ -162,6 +164,8 @@ def track_cameras(graph, images: Tensor, frames: Sequence[int], config: Tracking
                 loss.backward()
                 total += float(loss.detach())
             opt.step()
+            if on_step is not None:
+                on_step(li * config.steps + step + 1, len(config.levels) * config.steps)
             mean = total / max(len(frames), 1)
             first = mean if step == 0 else first
             last = mean

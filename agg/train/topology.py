@@ -145,6 +145,10 @@ class TopologyConfig:
         """Whether ``evolve`` runs after ``iteration`` (multiples of ``every`` up to ``stop``)."""
         return 0 < iteration <= self.stop and iteration % self.every == 0
 
+    def due_after(self, iteration: int, total: int) -> int:
+        """How many evolutions a run of ``total`` iterations has left after ``iteration``."""
+        return sum(1 for k in range(self.every, min(self.stop, total) + 1, self.every) if k > iteration)
+
 
 def _box_poses(node) -> np.ndarray:
     """[T, K, 4, 4] refined world_from_box of every instance of an agent node at every frame (float64)."""

@@ -28,6 +28,7 @@ from agg.train.checkpoint import load_state, restore, save_state, trainer_state
 from agg.train.config import TrainConfig
 from agg.train.data import TrainData
 from agg.train.densify import DensifyConfig, Densifier, highest
+from agg.train.eta import RunClock
 from agg.eval.metrics import psnr
 from agg.train.losses import photometric_loss, semantic_attention_loss
 from agg.train.moments import loss_key, restart_on_change
@@ -101,7 +102,8 @@ class Trainer:
         self.optimizers: dict[str, torch.optim.Optimizer] = {}
         self.loss_keys: dict[str, str] = {}  # group -> the key of the loss it last stepped on (agg.train.moments)
         self.build_optimizers()
-        self._t0 = time.perf_counter()
+        self.clock = RunClock()  # what the iterations, tracking steps and evolutions cost (agg.train.eta)
+        self._tracking_t = 0.0  # when the last tracking step ended
 
     # ------------------------------------------------------------------ set-up
     def _make_topology(self):
@@ -387,17 +389,24 @@ class Trainer:
         if self.cfg.events_at_tick_start and not self.schedule.settles(self.iteration):
             return True  # late in a Tick: the cameras would move and the background stand frozen in the Tock
         set_trainable(self.group_params(), frozenset())  # every Gaussian frozen; tracking frees omega / tau
-        t0 = time.perf_counter()
+        t0 = self._tracking_t = time.perf_counter()
         attention = self.data.m_bg if self.cfg.semantic else None
         report = track_cameras(self.graph, self.data.images, self.data.train_frames, t, self.extent,
                                attention=attention, ssim_weight=self.cfg.ssim_weight, lambda_sem=self.cfg.lambda_sem,
-                               delta=self.cfg.delta, should_stop=self.should_stop)
+                               delta=self.cfg.delta, should_stop=self.should_stop, on_step=self._tracking_step)
         if report is None:
             return False
         row = {"iteration": self.iteration, "seconds": round(time.perf_counter() - t0, 2), **report}
         self.tracking_log.append(row)
         self.emit(event="tracking", report=row)
         return True
+
+    def _tracking_step(self, done: int, total: int) -> None:
+        """After each step of a tracking round: time it, and report it (the iteration count stands still)."""
+        now = time.perf_counter()
+        self.clock.tracking_step(now - self._tracking_t, first=done == 1)
+        self._tracking_t = now
+        self._progress(None, done, tracking={"step": done, "steps": total})
 
     @property
     def tracked(self) -> int:
@@ -412,23 +421,45 @@ class Trainer:
         if self.progress is not None:
             self.progress(event)
 
+    def work_left(self, tracking_done: int = 0) -> tuple[int, int, int]:
+        """(iterations, camera-tracking steps, topology evolutions) still to run, ``tracking_done`` steps into a
+        round (the round under way counts as ahead until it ends)."""
+        total, t = self.cfg.iterations, self.tracking
+        steps = 0
+        if t is not None:
+            rounds = sum(1 for a in t.at if a <= total) - self.tracked
+            steps = max(rounds * len(t.levels) * t.steps - tracking_done, 0)
+        evolutions = self.topology.config.due_after(self.iteration, total) if self.topology is not None else 0
+        return total - self.iteration, steps, evolutions
+
+    def _progress(self, row: dict | None, tracking_done: int = 0, **extra) -> None:
+        """A training progress event after iteration ``row`` (None: during a tracking round, ``tracking_done``
+        steps into it)."""
+        eta = self.clock.eta(*self.work_left(tracking_done), frames=len(self.data.train_frames))
+        phase = row["phase"] if row is not None else self.schedule.phase(self.iteration).name
+        self.emit(stage="train", iteration=self.iteration, total=self.cfg.iterations, phase=phase,
+                  loss=None if row is None else row["loss"], psnr=None if row is None else row["psnr"],
+                  n_gaussians=self.graph.num_gaussians(), agents_spawned=len(self.spawned),
+                  agents_pruned=len(self.pruned), eta_s=eta, **extra)
+
     def run(self, checkpoint: Path | None = None, checkpoint_every: int | None = None) -> list[dict]:
         every = self.cfg.checkpoint_every if checkpoint_every is None else checkpoint_every
         total = self.cfg.iterations
-        start_it, t0 = self.iteration, time.perf_counter()
         while self.iteration < total:
             if (self.should_stop is not None and self.should_stop()) or not self._track_if_due():
                 self._checkpoint(checkpoint)
                 raise Cancelled(f"cancelled at iteration {self.iteration}")
+            t0, evolutions = time.perf_counter(), len(self.topology_log)
             row = self.step()
+            seconds = time.perf_counter() - t0
+            if len(self.topology_log) > evolutions:
+                self.clock.evolution(seconds)
+            else:
+                self.clock.step(seconds)
             if not math.isfinite(row["loss"]):
                 raise FloatingPointError(f"non-finite loss at iteration {self.iteration}: {row}")
-            done = self.iteration - start_it
-            eta = (time.perf_counter() - t0) / done * (total - self.iteration)
             if self.iteration % 10 == 0 or self.iteration == total:
-                self.emit(stage="train", iteration=self.iteration, total=total, phase=row["phase"],
-                          loss=row["loss"], psnr=row["psnr"], n_gaussians=self.graph.num_gaussians(),
-                          agents_spawned=len(self.spawned), agents_pruned=len(self.pruned), eta_s=eta)
+                self._progress(row)
             if every and self.iteration % every == 0:
                 self._checkpoint(checkpoint)
         self._reanchor()
