@@ -253,6 +253,9 @@ def print_metrics(metrics: dict, summary: dict | None) -> None:
         gate = summary.get("semantic") or {}
         if gate.get("active") is False:
             print(f"semantic loss: off, {gate.get('reason')}")
+        tracking = summary.get("camera_tracking") or {}
+        if tracking.get("active") is False:
+            print(f"camera tracking rounds: off, {tracking.get('reason')}")
 
 
 def _raise_interrupt(signum, frame) -> None:

@@ -144,6 +144,37 @@ def test_gt_poses_move_the_priors_into_the_ground_truth_frame(lifted, tmp_path):
     assert agent_anchor_for(replace(cfg, agent_anchor="camera"), out) == "camera"  # an explicit choice wins
 
 
+def test_tracking_rounds_run_unless_every_camera_prior_is_an_sfm_registration(scene, tmp_path):
+    import shutil
+
+    from agg.io.bundle import SceneBundle
+    from agg.train.camera_tracking import TrackingConfig
+    from agg.train.reconstruct import camera_tracking_for
+
+    assert get_preset("fast").camera_tracking == "auto" and get_preset("balanced").camera_tracking == "on"
+    cfg = replace(get_preset("tiny"), iterations=20, tracking=TrackingConfig(at=(6_000,), levels=(4,), steps=1),
+                  camera_tracking="auto")
+    noisy = SceneBundle.load(scene.parent / "bundle")  # the suite's cameras: ground truth plus noise
+    shutil.copytree(noisy.path, tmp_path / "sfm")
+    sfm = SceneBundle.load(tmp_path / "sfm")
+    sources = ["sfm"] * sfm.num_frames
+    sfm.write_poses(noisy.world_from_camera, source=sources[:-1] + ["interpolated"])  # one frame failed to register
+    assert camera_tracking_for(cfg, sfm) == ("on", "camera priors not all from SfM (interpolated)")
+    sfm.write_poses(noisy.world_from_camera, source=sources)
+    assert camera_tracking_for(cfg, noisy) == ("on", "camera priors not all from SfM (synthetic-noisy)")
+    assert camera_tracking_for(cfg, sfm) == ("off", "every camera's prior is an SfM registration")
+    assert camera_tracking_for(replace(cfg, camera_tracking="on"), sfm) == ("on", "the config's choice")
+    assert camera_tracking_for(replace(cfg, tracking=None, camera_tracking="on"), noisy)[0] == "off"
+    off = reconstruct(sfm.path, tmp_path / "off", cfg, evaluate=False)
+    on = reconstruct(sfm.path, tmp_path / "on", cfg, overrides={"camera_tracking": "on"}, evaluate=False)
+    assert off["camera_tracking"] == {"active": False, "reason": "every camera's prior is an SfM registration"}
+    assert off["tracking"] == [] and len(on["tracking"]) == 1 and on["camera_tracking"]["active"]
+    config = json.loads((tmp_path / "off" / "scene.json").read_text())["config"]
+    assert config["camera_tracking"] == "off" and config["tracking"] is None  # what "auto" became
+    with pytest.raises(ValueError, match="camera_tracking"):
+        reconstruct(sfm.path, tmp_path / "bad", cfg, overrides={"camera_tracking": "maybe"})
+
+
 def test_eval_prints_the_stable_json_keys(scene, capsys):
     capsys.readouterr()
     assert main(["eval", str(scene), "--json"]) == 0

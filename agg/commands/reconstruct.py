@@ -6,7 +6,7 @@ import argparse
 import json
 import sys
 
-from agg.train.config import ABLATIONS, AGENT_ANCHORS, PRESETS
+from agg.train.config import ABLATIONS, AGENT_ANCHORS, CAMERA_TRACKING, PRESETS
 
 
 def add_parser(subparsers) -> None:
@@ -32,6 +32,10 @@ def add_parser(subparsers) -> None:
                    help="camera: the priors' agents move with the camera's refinement, as tracklets lifted through "
                         "the estimated cameras do; world: they keep their world poses; auto (default): what the "
                         "bundle's tracklets were measured against (camera for agg priors; docs/TRAINING.md)")
+    p.add_argument("--camera-tracking", choices=CAMERA_TRACKING,
+                   help="the camera-tracking rounds (pose-only refinement against the map at a few milestones): "
+                        "on (the default but for fast), off, or auto (fast's): on unless every camera prior is an "
+                        "SfM registration (docs/TRAINING.md)")
     p.add_argument("--max-frames", type=int, metavar="N", help="keep at most N frames of a video")
     p.add_argument("--intrinsics", metavar="FILE|fx,fy,cx,cy", help="camera intrinsics (see agg priors)")
     p.add_argument("--no-resume", action="store_true", help="start over even if SCENE has a checkpoint")
@@ -107,6 +111,8 @@ def run(args: argparse.Namespace) -> int:
             overrides["semantic_min_contrast"] = None if given == "none" else given
         if args.agent_anchor:
             overrides["agent_anchor"] = args.agent_anchor
+        if args.camera_tracking:
+            overrides["camera_tracking"] = args.camera_tracking
         summary = reconstruct(args.input, args.output, args.preset, progress=bar, resume=not args.no_resume,
                               overrides=overrides, ablate=args.ablate or None, gt_poses=args.gt_poses,
                               evaluate=not args.no_eval, max_frames=args.max_frames, intrinsics=args.intrinsics,
@@ -126,6 +132,9 @@ def run(args: argparse.Namespace) -> int:
         gate = summary.get("semantic") or {}
         if gate.get("active") is False:
             print(f"semantic loss: off, {gate['reason']}")
+        tracking = summary.get("camera_tracking") or {}
+        if tracking.get("active") is False:
+            print(f"camera tracking rounds: off, {tracking['reason']}")
         if summary.get("agent_anchor") == "camera" and summary["initial"]["n_agents"]:
             print("agents: the priors' boxes move with the camera's refinement (their tracklets were lifted through "
                   "the estimated cameras; --agent-anchor world keeps them in place)")

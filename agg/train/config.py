@@ -24,6 +24,7 @@ from agg.train.camera_tracking import TrackingConfig
 
 ABLATIONS = ("tick-tock", "semantic", "topology")
 AGENT_ANCHORS = ("auto", *TRACK_ANCHORS)  # "auto": the bundle's Tracklets.anchor
+CAMERA_TRACKING = ("on", "off", "auto")  # "auto": off where every camera prior is an SfM registration
 PAPER_ITERATIONS = 30_000
 
 
@@ -102,6 +103,9 @@ class TrainConfig:
     checkpoint_every: int = 500  # iterations between checkpoints (0: only at the end / on cancel)
     init: InitConfig = field(default_factory=InitConfig)
     tracking: TrackingConfig | None = field(default_factory=TrackingConfig)  # camera tracking (None: off)
+    camera_tracking: str = "on"  # "on": the tracking rounds run (with ``tracking`` set); "off": they do not;
+    # "auto" (the fast preset's): off where every camera's prior is a registration of the priors' SfM (pose source
+    # "sfm"), on otherwise (docs/TRAINING.md "Tracking rounds only where the poses need them")
     evolution: TopologyConfig = field(default_factory=TopologyConfig)  # topology evolution's settings (paper scale)
 
     def __post_init__(self):
@@ -109,6 +113,8 @@ class TrainConfig:
             raise ValueError(f"densify_grad must be 'photo' or 'total', got {self.densify_grad!r}")
         if self.agent_anchor not in AGENT_ANCHORS:
             raise ValueError(f"agent_anchor must be one of {AGENT_ANCHORS}, got {self.agent_anchor!r}")
+        if self.camera_tracking not in CAMERA_TRACKING:
+            raise ValueError(f"camera_tracking must be one of {CAMERA_TRACKING}, got {self.camera_tracking!r}")
         if not 0.0 < self.tick_share < 1.0:
             raise ValueError(f"tick_share must lie strictly between 0 and 1, got {self.tick_share}")
 
@@ -167,7 +173,7 @@ def _preset(name: str, max_width: int, iterations: int, sh_degree: int, max_gaus
 PRESETS: dict[str, TrainConfig] = {
     # CPU-sized presets; 'paper' is Sec. 4.2 (a GPU run: full resolution, 30k iterations, SH 3)
     "fast": _preset("fast", 320, 1_500, 0, 40_000, agent_budget=1500, checkpoint_every=250,
-                    tracking=TrackingConfig(at=(2_500, 5_000), levels=(4, 2), steps=10)),
+                    tracking=TrackingConfig(at=(2_500, 5_000), levels=(4, 2), steps=10), camera_tracking="auto"),
     "balanced": _preset("balanced", 480, 2_000, 1, 60_000, agent_budget=2000),
     "quality": _preset("quality", 960, 10_000, 2, 300_000, agent_budget=6000, checkpoint_every=1000),
     "paper": _preset("paper", 100_000, 30_000, 3, 1_000_000, agent_budget=20_000, checkpoint_every=2000),
