@@ -208,6 +208,8 @@ def _machines(runs: list[dict]) -> str:
     if len(tracked) > full:
         options += (f" Coarse tracking levels splatted at their own size (the default before 2026-12-07): "
                     f"{len(tracked) - full} of {len(runs)} runs.")
+    if tracked and len(runs) > len(tracked):
+        options += f" Without tracking rounds: {len(runs) - len(tracked)} of {len(runs)} runs."
     return "Machines: " + ", ".join(f"{cpu} ({n} runs)" for cpu, n in sorted(count.items())) + "." + options
 
 
