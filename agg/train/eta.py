@@ -2,8 +2,9 @@
 
 A run's time is not spread evenly over its iterations. A camera-tracking round (``camera_tracking``) renders
 every training frame ``len(levels) x steps`` times while the iteration count stands still, and a topology
-evolution runs between two iterations. On the dashcam sample at ``fast`` (the README's demo, an AMD EPYC VM
-without AVX-512) the two rounds took 124 and 130 s of 657 s of training, against 0.27 s for an iteration.
+evolution runs between two iterations. On the dashcam sample at ``fast`` (the README's demo on an AMD EPYC VM
+without AVX-512, before that preset skipped the rounds on clips whose cameras SfM registered) the two rounds took
+124 and 130 s of 657 s of training, against 0.27 s for an iteration.
 The elapsed time per elapsed iteration, times the iterations left, read 27 min just after the first round with
 under 9 min to go, and then fell for the rest of the run. So the clock keeps the three costs apart and adds up
 what is still ahead:
