@@ -51,6 +51,7 @@ def full_priors(rng: np.random.Generator) -> dict:
     return dict(poses=make_poses(), pose_conf=rng.uniform(0, 1, T).astype(np.float32), sparse=sparse,
                 dense=rng.uniform(0, 50, (T, H, W)).astype(np.float32),
                 dense_conf=rng.uniform(0, 1, (T, H, W)).astype(np.float16), masks=rng.uniform(size=(T, H, W)) > 0.5,
+                ego=np.arange(H)[:, None].repeat(W, 1) >= H - 3,  # a bonnet: the bottom three rows
                 tracklets=Tracklets(ids=np.array([7, 3]), classes=["rigid", "non-rigid"], boxes=boxes, valid=valid,
                                     confidence=rng.uniform(0, 1, (2, T)).astype(np.float32), labels=["car", "person"]),
                 semantics=sem)
@@ -61,6 +62,7 @@ def write_all(b: SceneBundle, p: dict) -> None:
     b.write_sparse_depth(p["sparse"])
     b.write_dense_depth(p["dense"], confidence=p["dense_conf"], dtype="float32")
     b.write_dynamic_masks(p["masks"])
+    b.write_ego_mask(p["ego"], source="flow-residual")
     b.write_tracklets(p["tracklets"])
     b.write_semantics(p["semantics"])
 
@@ -116,6 +118,8 @@ def test_round_trip_every_optional_part(tmp_path):
     np.testing.assert_array_equal(b2.dense_depth, p["dense"])
     np.testing.assert_array_equal(b2.dense_depth_confidence, p["dense_conf"])
     np.testing.assert_array_equal(b2.dynamic_masks, p["masks"].astype(np.uint8))
+    assert b2.ego_mask.dtype == bool and b2.manifest["ego_mask"]["source"] == "flow-residual"
+    np.testing.assert_array_equal(b2.ego_mask, p["ego"])
     tr, tr0 = b2.tracklets, p["tracklets"]
     assert tr.classes == ["rigid", "non-rigid"] and tr.labels == ["car", "person"] and tr.ids.tolist() == [7, 3]
     np.testing.assert_array_equal(tr.valid, tr0.valid)
@@ -215,6 +219,9 @@ def test_validation_errors_on_load(tmp_path):
     edit(lambda m: m["poses"].pop("source"))
     with pytest.raises(BundleValidationError, match="malformed manifest entry"):
         SceneBundle.load(b.path)
+    edit(lambda m: m.update(ego_mask={"file": "poses/confidence.npy", "source": "given"}))
+    with pytest.raises(BundleValidationError, match=r"ego mask\) is \(6,\), expected \(12, 16\)"):
+        SceneBundle.load(b.path)
     mpath.write_text("{not json")
     with pytest.raises(BundleValidationError, match="not valid JSON"):
         SceneBundle.load(b.path)
@@ -250,6 +257,12 @@ def test_validation_errors_on_write(tmp_path):
         b.write_dense_depth(np.ones((T, H, W + 1)))
     with pytest.raises(BundleValidationError, match="bool or 0/1"):
         b.write_dynamic_masks(np.full((T, H, W), 7, np.uint8))
+    with pytest.raises(BundleValidationError, match=r"ego mask must be \[12, 16\]"):
+        b.write_ego_mask(np.zeros((T, H, W), bool))
+    with pytest.raises(BundleValidationError, match="bool or 0/1"):
+        b.write_ego_mask(np.full((H, W), 2, np.uint8))
+    with pytest.raises(BundleValidationError, match="whole image"):
+        b.write_ego_mask(np.ones((H, W), bool))
     with pytest.raises(BundleValidationError, match="> 0"):
         b.write_sparse_depth([np.array([[1, 1, -2.0, 1]])] * T)
     tr = Tracklets(ids=np.array([1]), classes=["truck"], boxes=np.zeros((1, T, 7)), valid=np.ones((1, T), bool))

@@ -2,8 +2,8 @@
 
 The format, the conventions of every part and this API are documented in ``docs/BUNDLE.md``. Frames, timestamps
 (int64 microseconds) and pinhole intrinsics (training resolution, OpenCV pixel centres) are required; poses
-(``world_from_camera``, OpenCV camera axes, world = first camera), depth, dynamic masks, tracklets, semantic
-features and the ``gt/`` sidecar are optional. Lengths are in scene units: ``metric = scale * scene_units``.
+(``world_from_camera``, OpenCV camera axes, world = first camera), depth, dynamic masks, the ego-vehicle mask,
+tracklets, semantic features and the ``gt/`` sidecar are optional. Lengths are in scene units: ``metric = scale * scene_units``.
 """
 
 from __future__ import annotations
@@ -26,9 +26,9 @@ __all__ = ["FORMAT", "VERSION", "PARTS", "TRACK_CLASSES", "TRACK_ANCHORS", "PROT
 FORMAT = "agg-bundle"
 VERSION = 1
 MANIFEST = "manifest.json"
-PARTS = ("poses", "depth_sparse", "depth_dense", "dynamic_masks", "tracklets", "semantics", "gt")
+PARTS = ("poses", "depth_sparse", "depth_dense", "dynamic_masks", "ego_mask", "tracklets", "semantics", "gt")
 _PART_DIRS = {"poses": "poses", "depth_sparse": "depth", "depth_dense": "depth", "dynamic_masks": "masks",
-              "tracklets": "tracklets", "semantics": "semantics", "gt": "gt"}
+              "ego_mask": "masks", "tracklets": "tracklets", "semantics": "semantics", "gt": "gt"}
 
 
 class LazyFrames:
@@ -204,6 +204,10 @@ class SceneBundle(BundlePriorsMixin):
                           ("dynamic_masks", self.dynamic_masks)):
             if arr is not None:
                 _check(arr.shape == (n, h, w), f"{part} array is {arr.shape}, expected ({n}, {h}, {w})")
+        if self.has("ego_mask"):
+            rel = self._manifest["ego_mask"]["file"]
+            ego = self._npy(rel)
+            _check(ego.shape == (h, w), f"{rel} (the ego mask) is {ego.shape}, expected ({h}, {w})")
         tr = self.tracklets
         if tr is not None:
             kk = len(tr.classes)

@@ -152,6 +152,22 @@ class BundlePriorsMixin:
         self._manifest["dynamic_masks"] = {"file": "masks/dynamic.npy", "source": source}
         self._write_manifest()
 
+    @property
+    def ego_mask(self) -> np.ndarray | None:
+        """bool [H, W], True on the recording vehicle's own pixels (its bonnet or dashboard, fixed in the image in
+        every frame), or None. Training and scoring leave these pixels out (docs/BUNDLE.md)."""
+        return np.asarray(self._npy(self._manifest["ego_mask"]["file"])) > 0 if self.has("ego_mask") else None
+
+    def write_ego_mask(self, mask: np.ndarray, source: str = "given") -> None:
+        h, w = self.height, self.width
+        m = np.asarray(mask)
+        _check(m.shape == (h, w), f"the ego mask must be [{h}, {w}], got {m.shape}")
+        _check(m.dtype == bool or bool(np.isin(m, (0, 1)).all()), "the ego mask must be bool or 0/1")
+        _check(not bool(m.astype(bool).all()), "the ego mask covers the whole image")
+        _save_npy(self.path / "masks/ego.npy", m.astype(np.uint8))
+        self._manifest["ego_mask"] = {"file": "masks/ego.npy", "source": source}
+        self._write_manifest()
+
     # ------------------------------------------------------------------ tracklets
     @property
     def tracklets(self) -> Tracklets | None:
