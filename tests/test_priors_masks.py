@@ -76,6 +76,19 @@ def test_ego_vehicle_region_is_the_persistent_bottom_band():
     assert not ego_vehicle_region(masks[:4], MaskConfig()).any()  # too few frames for the rule
 
 
+def test_a_bonnet_fixed_in_the_image_is_the_ego_mask_and_no_agent(busy):
+    gt, depth = busy
+    rgb = gt.rgb.copy()
+    rng = np.random.default_rng(0)
+    bonnet = np.repeat(np.repeat(rng.uniform(0.2, 0.8, (6, 80, 3)), 4, 0), 4, 1)  # [24, 320, 3] coarse texture
+    rgb[:, -24:] = bonnet  # the same pixels in every frame, whatever the camera does
+    res = dynamic_masks(rgb, gt.K, gt.world_from_camera, depth)
+    assert res.ego.shape == depth.shape[1:] and res.ego.dtype == bool
+    assert res.ego[-24:].mean() > 0.9 and res.ego[:-40].sum() == 0  # the band and its dilation, nothing above
+    assert not res.masks[:, res.ego].any()  # and no agent there
+    assert not dynamic_masks(gt.rgb, gt.K, gt.world_from_camera, depth).ego.any()  # the clip itself has none
+
+
 def test_bad_inputs_raise_clear_errors(busy):
     gt, depth = busy
     rgb, K, poses = gt.rgb[:3], gt.K, gt.world_from_camera[:3]

@@ -193,7 +193,9 @@ def format_summary(s: dict) -> str:
                                            for k, v in s["depth"].items()))
     if s.get("masks"):
         m = s["masks"]
-        lines.append(f"masks: {100 * m['coverage']:.2f} % of pixels, {m['frames_with_mask']} frames with a mask")
+        ego = f", ego vehicle {100 * m['ego_share']:.1f} % of the image (not trained or scored)" \
+            if m.get("ego_share") else ""
+        lines.append(f"masks: {100 * m['coverage']:.2f} % of pixels, {m['frames_with_mask']} frames with a mask{ego}")
     if s.get("tracklets"):
         t = s["tracklets"]
         filled = t.get("filled_per_track") or []

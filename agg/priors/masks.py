@@ -86,6 +86,8 @@ class MaskResult:
     masks: np.ndarray  # [T, H, W] uint8 0/1
     residual: np.ndarray  # [T, H, W] float32, normalised residual (dimensionless, threshold 1 by default)
     flow: np.ndarray | None = None  # [T, H, W, 2] float32 forward flow i -> i+1 (last frame zeros), optional
+    ego: np.ndarray | None = None  # [H, W] bool, the ego vehicle's pixels (ego_vehicle_region), taken out of the
+    # masks; all False where the rule found none (or the clip is shorter than ego_min_frames)
 
 
 # ------------------------------------------------------------------------------------------------------ flow
@@ -372,7 +374,7 @@ def dynamic_masks(frames, K: np.ndarray, world_from_camera: np.ndarray, depth: n
         residual[:, ego] = 0.0
         masks[:, ego] = 0
         masks = np.stack([clean_mask(m > 0, config) for m in masks])
-    return MaskResult(masks=masks, residual=residual, flow=fwd)
+    return MaskResult(masks=masks, residual=residual, flow=fwd, ego=ego)
 
 
 def ego_vehicle_region(masks: np.ndarray, config: MaskConfig = MaskConfig()) -> np.ndarray:

@@ -201,10 +201,15 @@ def run_priors(bundle: SceneBundle, config: PriorsConfig = PriorsConfig(), progr
             mres = dynamic_masks(frames, K, world_from_camera, depth, MaskConfig(), depth_confidence=depth_conf,
                                  progress=st.tick)
             bundle.write_dynamic_masks(mres.masks, source="flow-residual")
+            if mres.ego is not None and mres.ego.any():  # left out of training and scoring
+                bundle.write_ego_mask(mres.ego, source="flow-residual")
+            else:
+                bundle.remove("ego_mask")  # a stale one of earlier masks
             residual = mres.residual
             np.save(bundle.path / "masks" / "flow_residual.npy", residual.astype(np.float16))
             summary.masks = {"source": "flow-residual", "coverage": float(mres.masks.mean()),
-                             "frames_with_mask": int((mres.masks.reshape(t, -1).max(1) > 0).sum())}
+                             "frames_with_mask": int((mres.masks.reshape(t, -1).max(1) > 0).sum()),
+                             "ego_share": float(mres.ego.mean()) if mres.ego is not None else 0.0}
     masks = np.asarray(bundle.dynamic_masks) if bundle.has("dynamic_masks") else None
     if residual is None and (bundle.path / "masks" / "flow_residual.npy").is_file():
         residual = np.load(bundle.path / "masks" / "flow_residual.npy").astype(np.float32)
