@@ -177,16 +177,19 @@ def region_scores(scene_dir: Path) -> dict | None:
 
 def split_regions(rows: list[dict], n: int) -> dict:
     """PSNR outside the agent masks, and the agents' shares of pixels and squared error, from ``evaluate``'s
-    per-frame rows of ``n``-pixel frames (each frame's MSE split into its agent and non-agent parts)."""
-    sse = sse_ag = n_ag = 0.0
+    per-frame rows of ``n``-pixel frames (each frame's MSE split into its agent and non-agent parts; a row's
+    ``pixels``, where it has them, are the pixels it scored: the ego vehicle's are not)."""
+    sse = sse_ag = n_ag = n_all = 0.0
     for r in rows:
-        sse += 10.0 ** (-r["psnr"] / 10.0) * n  # per-value MSE x pixels (the 3 channels cancel in the ratios)
+        scored = r.get("pixels", n)
+        sse += 10.0 ** (-r["psnr"] / 10.0) * scored  # per-value MSE x pixels (the 3 channels cancel in the ratios)
+        n_all += scored
         if r["agent_pixels"]:
             sse_ag += 10.0 ** (-r["psnr_agents"] / 10.0) * r["agent_pixels"]
             n_ag += r["agent_pixels"]
-    n_bg = n * len(rows) - n_ag
+    n_bg = n_all - n_ag
     return {"psnr_background": float(-10.0 * np.log10(max(sse - sse_ag, 1e-12) / n_bg)),
-            "agent_pixel_share": n_ag / (n * len(rows)), "agent_error_share": sse_ag / sse}
+            "agent_pixel_share": n_ag / n_all, "agent_error_share": sse_ag / sse}
 
 
 def prior_mask_scores(scene_dir: Path) -> dict:

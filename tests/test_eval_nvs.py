@@ -222,3 +222,36 @@ def test_evaluate_scores_held_out_frames_of_the_initial_graph(synth, monkeypatch
     r2 = evaluate(graph, bundle, test, train, agent_masks=empty, max_frames=1, images=frames_u8)
     assert r2["agent_mask_source"] == "argument" and r2["psnr_agents"] is None and r2["ssim_agents"] is None
     assert r2["n_test_frames"] == 1 and r2["per_frame"][0]["psnr"] == pytest.approx(r["per_frame"][0]["psnr"])
+
+
+def test_evaluate_leaves_the_ego_vehicle_out(synth, tmp_path, monkeypatch):
+    import shutil
+
+    from agg.eval.nvs import evaluate
+    from agg.graph import SceneGraph
+    from agg.io.bundle import SceneBundle
+    from agg.nodes.init import InitConfig
+
+    monkeypatch.delenv("AGG_LPIPS_WEIGHTS", raising=False)
+    bundle, gt = synth
+    shutil.copytree(bundle.path, tmp_path / "b")
+    ego = np.zeros((bundle.height, bundle.width), bool)
+    ego[-12:, 20:140] = True  # a bonnet over the bottom rows
+    mine = SceneBundle.load(tmp_path / "b")
+    mine.write_ego_mask(ego)
+    graph = SceneGraph.from_bundle(mine, InitConfig(opacity=0.9))
+    train, test = split_frames(mine.num_frames)
+    frames = torch.as_tensor(np.array(mine.frames[:]))  # [T, H, W, 3]
+    scrawled = frames.clone()
+    scrawled[:, torch.as_tensor(ego)] = torch.tensor([1.0, 0.0, 1.0])  # what the ego pixels show does not count
+    r, r2 = evaluate(graph, mine, test, train), evaluate(graph, mine, test, train, images=scrawled)
+    full = evaluate(graph, bundle, test, train, images=frames)  # the same frames without the ego mask
+    assert r["ego_pixel_share"] == pytest.approx(ego.mean()) and full["ego_pixel_share"] == 0.0
+    for key in ("psnr", "psnr_agents"):
+        assert r2[key] == pytest.approx(r[key], abs=1e-9), key
+    for key in ("ssim", "ssim_agents"):  # only SSIM's windows that straddle the bonnet's edge see what it shows
+        assert r2[key] == pytest.approx(r[key], abs=0.01), key
+    assert r["psnr"] != pytest.approx(full["psnr"], abs=1e-6)
+    for p, q in zip(r["per_frame"], full["per_frame"]):
+        assert p["pixels"] == ego.size - ego.sum() and q["pixels"] == ego.size
+        assert p["agent_pixels"] == int(((gt.instance[p["frame"]] > 0) & ~ego).sum())

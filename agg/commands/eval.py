@@ -50,4 +50,6 @@ def run(args: argparse.Namespace) -> int:
     else:
         for k in KEYS:
             print(f"{k:>14}: {metrics.get(k)}")
+        if metrics.get("ego_pixel_share"):
+            print(f"{'ego_pixels':>14}: {100 * metrics['ego_pixel_share']:.1f} % of the image, not scored")
     return 0

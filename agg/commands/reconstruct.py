@@ -140,6 +140,8 @@ def run(args: argparse.Namespace) -> int:
                   "the estimated cameras; --agent-anchor world keeps them in place)")
         if m:
             agents = "n/a" if m.get("psnr_agents") is None else f"{m['psnr_agents']:.2f} dB"
+            ego = f" (the ego vehicle's {100 * m['ego_pixel_share']:.1f} % of the image not scored)" \
+                if m.get("ego_pixel_share") else ""
             print(f"NVS ({m['n_test_frames']} held-out frames): PSNR {m['psnr']:.2f} dB  SSIM {m['ssim']:.3f}  "
-                  f"agents PSNR {agents}  render {m['render_fps']:.1f} FPS")
+                  f"agents PSNR {agents}  render {m['render_fps']:.1f} FPS{ego}")
     return 0

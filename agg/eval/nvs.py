@@ -17,9 +17,13 @@ Aggregation (the keys of the returned dict):
   [T, H, W] when given, else the bundle's ground-truth dynamic masks (``bundle.gt.dynamic_masks``, every agent
   instance), else none (then both are None); ``agent_mask_source`` says which ("argument", "gt_dynamic_masks",
   "none").
+- The ego vehicle's pixels (the bundle's ``ego_mask``, ``agg.eval.ego``) are never scored: PSNR and SSIM are
+  over the other pixels, SSIM's windows and LPIPS see the frame's own pixels there (the render's are replaced),
+  and agent masks lose them. ``ego_pixel_share``
+  is the share of the image left out (0.0 without an ego mask).
 - ``render_fps``: test frames per second of the ``render`` calls alone (no metric time), after one warm-up render.
 - ``split`` ("nvs"), ``n_test_frames``, ``n_gaussians``, ``n_agents``; ``per_frame``: one dict per frame (frame,
-  psnr, ssim, lpips, psnr_agents, ssim_agents, agent_pixels).
+  psnr, ssim, lpips, psnr_agents, ssim_agents, agent_pixels, pixels: the pixels scored).
 """
 
 from __future__ import annotations
@@ -31,6 +35,7 @@ import numpy as np
 import torch
 
 from agg.device import synchronize
+from agg.eval.ego import scene_pixels, with_ego_from
 from agg.eval.interpolate import interpolate_agents, interpolate_camera
 from agg.eval.metrics import Lpips, as_image, psnr, psnr_from_mse, squared_error, ssim, ssim_sum
 
@@ -131,20 +136,26 @@ def evaluate(graph, bundle, test_frames: Sequence[int], train_frames: Sequence[i
     per_frame = []
     sse = n_err = 0.0
     ssum = n_ssim = 0.0
+    height, width = renders[0].shape[:2]
+    scene = scene_pixels(bundle, width, height)  # [H, W] bool, or None: every pixel is scored
     for frame, pred in zip(frames, renders):
         gt = as_image(images[frame] if images is not None else bundle.frame(frame))
-        gt = fit_image(gt, *pred.shape[:2], "area")  # [H, W, 3] float in [0, 1]
-        row = {"frame": frame, "psnr": psnr(pred, gt), "ssim": ssim(pred, gt), "lpips": lpips(pred, gt),
-               "psnr_agents": None, "ssim_agents": None, "agent_pixels": None}
+        gt = fit_image(gt, height, width, "area")  # [H, W, 3] float in [0, 1]
+        seen = with_ego_from(gt, pred, scene)  # [H, W, 3] the render, with the frame's own ego pixels
+        row = {"frame": frame, "psnr": psnr(pred, gt, scene), "ssim": ssim(seen, gt, scene),
+               "lpips": lpips(seen, gt), "psnr_agents": None, "ssim_agents": None, "agent_pixels": None,
+               "pixels": height * width if scene is None else int(scene.sum())}
         if masks is not None:
-            m = fit_image(torch.as_tensor(np.array(masks[frame], bool))[..., None], *pred.shape[:2], "nearest")
+            m = fit_image(torch.as_tensor(np.array(masks[frame], bool))[..., None], height, width, "nearest")
             m = m[..., 0].numpy() > 0.5  # [H, W]
+            if scene is not None:
+                m &= scene.numpy()
             row["agent_pixels"] = int(m.sum())
             if m.any():
                 e, n = squared_error(pred, gt, m)
                 sse, n_err = sse + e, n_err + n
                 row["psnr_agents"] = psnr_from_mse(e / n)
-                s, n = ssim_sum(pred, gt, m)
+                s, n = ssim_sum(seen, gt, m)
                 ssum, n_ssim = ssum + s, n_ssim + n
                 row["ssim_agents"] = s / n
         per_frame.append(row)
@@ -161,6 +172,7 @@ def evaluate(graph, bundle, test_frames: Sequence[int], train_frames: Sequence[i
         "render_fps": len(frames) / max(render_s, 1e-9),
         "n_gaussians": n_gaussians,
         "n_agents": int(sum(n.num_instances for n in graph.agent_nodes())),
+        "ego_pixel_share": 0.0 if scene is None else float(1.0 - scene.float().mean()),
         "per_frame": per_frame,
         "agent_mask_source": source,
         "lpips_note": lpips.note,

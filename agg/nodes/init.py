@@ -1,8 +1,8 @@
 """Initialise a scene graph's Gaussians from a scene bundle's priors.
 
 - **Background**: static points accumulated over frames: pixels with depth (dense where the bundle has it, else
-  the sparse rows) outside the dynamic masks, back-projected with the frame's pose, coloured from the frame,
-  merged on a voxel grid (one point per voxel, averaged), then capped at a budget.
+  the sparse rows) outside the dynamic masks and the ego vehicle's mask, back-projected with the frame's pose,
+  coloured from the frame, merged on a voxel grid (one point per voxel, averaged), then capped at a budget.
 - **Rigid agents**: for each rigid tracklet, the depth pixels of the frames where it is valid, taken into the box
   frame (``inv(world_from_box)``) and kept when inside the box (grown by ``box_margin``); a track with too few
   points is filled with points spread uniformly in its box, with the mean colour of its pixels.
@@ -118,6 +118,7 @@ def init_from_bundle(bundle: SceneBundle, config: InitConfig = InitConfig()) -> 
     dense = bundle.dense_depth if bundle.has("depth_dense") else None
     conf = bundle.dense_depth_confidence if dense is not None else None
     masks = bundle.dynamic_masks
+    ego = bundle.ego_mask  # [H, W] bool or None
     tracks = bundle.tracklets
     agent_rows = list(range(len(tracks.classes))) if tracks else []  # every agent track, rigid or not
     bg_xyz, bg_rgb = [], []
@@ -126,6 +127,8 @@ def init_from_bundle(bundle: SceneBundle, config: InitConfig = InitConfig()) -> 
         uv, cam, rgb = _frame_points(bundle, i, cfg, rng, dense, conf)
         world = cam @ poses[i, :3, :3].T + poses[i, :3, 3]  # [M, 3]
         static = np.ones(len(uv), bool) if masks is None else np.asarray(masks[i])[uv[:, 1], uv[:, 0]] == 0
+        if ego is not None:
+            static &= ~ego[uv[:, 1], uv[:, 0]]  # the ego vehicle's pixels are no part of the scene
         bg_xyz.append(world[static])
         bg_rgb.append(np.c_[rgb[static], cam[static, 2]])  # colour and the depth it was seen at
         for k in agent_rows:

@@ -47,6 +47,7 @@ from typing import Callable, Sequence
 import torch
 from torch import Tensor
 
+from agg.eval.ego import with_ego_from
 from agg.eval.nvs import fit_image
 from agg.io.video import intrinsics_at, scale_intrinsics
 from agg.train.losses import photometric_loss, semantic_attention_loss
@@ -91,37 +92,49 @@ def level_inputs(graph, images: Tensor, attention: Tensor | None, frames: Sequen
     return targets, maps, intrinsics
 
 
+def level_weight(weight: Tensor | None, graph, level: int) -> Tensor | None:
+    """[h, w] at a tracking level (``level_size``): 1 where every training pixel under the level's pixel has
+    weight 1 in ``weight`` [H, W] (``TrainData.scene_weight``), else 0; None without one."""
+    if weight is None:
+        return None
+    w, h = level_size(graph.width, graph.height, level)
+    return (fit_image(weight[..., None], h, w)[..., 0] >= 1.0 - 1e-6).float()
+
+
 def frame_loss(graph, frame: int, target: Tensor, attention: Tensor | None, K: Tensor, ssim_weight: float = 0.2,
-               lambda_sem: float = 0.8, delta: float = 1e-6, render_size: tuple[int, int] | None = None) -> Tensor:
+               lambda_sem: float = 0.8, delta: float = 1e-6, render_size: tuple[int, int] | None = None,
+               weight: Tensor | None = None) -> Tensor:
     """A tracking step's loss of one frame rendered through its current camera at ``target``'s size: L_photo,
     plus Eq. 3 with ``attention`` (M_bg) when given. target [h, w, 3]; attention [h, w]; K [3, 3] at the render's
-    size: ``target``'s, or ``render_size`` (w, h), whose render is area-averaged to ``target``'s size."""
+    size: ``target``'s, or ``render_size`` (w, h), whose render is area-averaged to ``target``'s size; weight
+    [h, w]: 0 on the ego vehicle's pixels (``level_weight``), left out of both terms, or None."""
     h, w = target.shape[:2]
     rw, rh = render_size if render_size is not None else (w, h)
     color = graph.render(frame, K=K, width=rw, height=rh).color  # [rh, rw, 3]
-    color = fit_image(color, h, w)  # [h, w, 3]
-    loss = photometric_loss(color, target, ssim_weight if min(w, h) >= 11 else 0.0)
+    color = with_ego_from(target, fit_image(color, h, w), weight)  # [h, w, 3]
+    loss = photometric_loss(color, target, ssim_weight if min(w, h) >= 11 else 0.0, weight)
     if attention is not None:
         loss = loss + semantic_attention_loss(color, target, attention, lambda_sem, delta)
     return loss
 
 
 def full_size_losses(graph, frames: Sequence[int], inputs, ssim_weight: float, lambda_sem: float,
-                     delta: float) -> list[float]:
+                     delta: float, weight: Tensor | None = None) -> list[float]:
     """Each frame's ``frame_loss`` [F] through its current camera, no gradient; ``inputs`` is ``level_inputs``'s
-    (targets, maps, intrinsics)."""
+    (targets, maps, intrinsics); ``weight`` [H, W] L_photo's pixel weight or None."""
     targets, maps, intrinsics = inputs
     with torch.no_grad():
         return [float(frame_loss(graph, f, targets[f], None if maps is None else maps[f], intrinsics[f],
-                                 ssim_weight, lambda_sem, delta)) for f in frames]
+                                 ssim_weight, lambda_sem, delta, weight=weight)) for f in frames]
 
 
 def track_cameras(graph, images: Tensor, frames: Sequence[int], config: TrackingConfig, extent: float, *,
                   attention: Tensor | None = None, ssim_weight: float = 0.2, lambda_sem: float = 0.8,
                   delta: float = 1e-6, should_stop: Callable[[], bool] | None = None,
-                  on_step: Callable[[int, int], None] | None = None) -> dict | None:
+                  on_step: Callable[[int, int], None] | None = None, weight: Tensor | None = None) -> dict | None:
     """Refine ``graph.camera``'s corrections of ``frames`` against the frozen map; returns a report (the mean
-    loss of the first and last step of each level). images [T, H, W, 3]; attention [T, H, W] (M_bg) or None.
+    loss of the first and last step of each level). images [T, H, W, 3]; attention [T, H, W] (M_bg) or None;
+    weight [H, W] L_photo's pixel weight (``TrainData.scene_weight``: 0 on the ego vehicle) or None.
 
     ``should_stop()`` is asked before every step; once it is True the corrections are put back as they were
     before the round and None is returned (the round can be run again from the start, e.g. after a resume).
@@ -137,13 +150,14 @@ def track_cameras(graph, images: Tensor, frames: Sequence[int], config: Tracking
     report = {"levels": [], **({"render_full": True} if config.render_full else {})}
     full = level_inputs(graph, images, attention, frames, 1) if config.gate or config.render_full else None
     if config.gate:
-        loss_before = full_size_losses(graph, frames, full, ssim_weight, lambda_sem, delta)  # [F]
+        loss_before = full_size_losses(graph, frames, full, ssim_weight, lambda_sem, delta, weight)  # [F]
     for li, level in enumerate(config.levels):
         factor = 0.5 ** li
         opt.param_groups[0]["lr"] = config.lr_rotation * factor
         cam.omega.requires_grad_(li >= config.rotation_from)  # a centre-only level leaves omega without a gradient
         opt.param_groups[1]["lr"] = config.lr_translation * extent * factor
         targets, maps, intrinsics = level_inputs(graph, images, attention, frames, level)
+        pixel_weight = level_weight(weight, graph, level)  # [h, w] or None
         render_size = None
         if config.render_full and level_size(graph.width, graph.height, level) != (graph.width, graph.height):
             render_size = (graph.width, graph.height)  # splat at the training size, compare blurred
@@ -160,7 +174,7 @@ def track_cameras(graph, images: Tensor, frames: Sequence[int], config: Tracking
             total = 0.0
             for f in frames:
                 loss = frame_loss(graph, f, targets[f], None if maps is None else maps[f], intrinsics[f],
-                                  ssim_weight, lambda_sem, delta, render_size)
+                                  ssim_weight, lambda_sem, delta, render_size, pixel_weight)
                 loss.backward()
                 total += float(loss.detach())
             opt.step()
@@ -172,7 +186,7 @@ def track_cameras(graph, images: Tensor, frames: Sequence[int], config: Tracking
         report["levels"].append({"level": level, "loss_first": first, "loss_last": last})
     opt.zero_grad(set_to_none=True)
     if config.gate:
-        loss_after = full_size_losses(graph, frames, full, ssim_weight, lambda_sem, delta)  # [F]
+        loss_after = full_size_losses(graph, frames, full, ssim_weight, lambda_sem, delta, weight)  # [F]
         back = [f for f, a, b in zip(frames, loss_after, loss_before) if not a < b]  # frames put back
         with torch.no_grad():
             for p, b in zip(params, before):

@@ -1,4 +1,5 @@
-"""Training data of a bundle at the training resolution: frames, intrinsics, attention maps, the NVS split."""
+"""Training data of a bundle at the training resolution: frames, intrinsics, attention maps, the NVS split, and the
+weight that leaves the ego vehicle's pixels out."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ import torch
 import torch.nn.functional as F  # noqa: N812
 from torch import Tensor
 
+from agg.eval.ego import scene_pixels
 from agg.eval.interpolate import split_frames
 from agg.io.bundle import SceneBundle
 from agg.io.video import scale_intrinsics
@@ -26,6 +28,8 @@ class TrainData:
     train_frames: list[int]
     test_frames: list[int]
     semantic: dict | None = None  # semantic_gate's report (None: no attention maps, or not checked)
+    scene_weight: Tensor | None = None  # [H, W] 1 on the scene's pixels, 0 on the ego vehicle's (agg.eval.ego;
+    # None: the bundle has no ego mask): every loss weighs the pixels by it
 
     @property
     def num_frames(self) -> int:
@@ -37,7 +41,8 @@ class TrainData:
             return None if x is None else x.to(device)
 
         return TrainData(self.images.to(device), self.K.to(device), self.width, self.height, move(self.m_bg),
-                         move(self.m_ag), list(self.train_frames), list(self.test_frames), self.semantic)
+                         move(self.m_ag), list(self.train_frames), list(self.test_frames), self.semantic,
+                         move(self.scene_weight))
 
 
 def training_size(width: int, height: int, max_width: int) -> tuple[int, int, float]:
@@ -79,7 +84,11 @@ def load_train_data(bundle: SceneBundle, max_width: int, attention_norm: str = "
         gate = semantic_gate(m_bg[train], m_ag[train], masks, min_contrast)
         if not gate["active"]:
             m_bg = m_ag = None
-    return TrainData(images, K, w, h, m_bg, m_ag, train, test, gate)
+    scene = scene_pixels(bundle, w, h)
+    weight = None if scene is None else scene.float()  # [h, w]
+    if weight is not None and m_bg is not None:  # Eq. 3 leaves the ego vehicle out too
+        m_bg, m_ag = m_bg * weight, m_ag * weight
+    return TrainData(images, K, w, h, m_bg, m_ag, train, test, gate, weight)
 
 
 def resize_depth(depth: np.ndarray, width: int, height: int) -> np.ndarray:

@@ -29,6 +29,7 @@ from agg.train.config import TrainConfig
 from agg.train.data import TrainData
 from agg.train.densify import DensifyConfig, Densifier, highest
 from agg.train.eta import RunClock
+from agg.eval.ego import with_ego_from
 from agg.eval.metrics import psnr
 from agg.train.losses import photometric_loss, semantic_attention_loss
 from agg.train.moments import loss_key, restart_on_change
@@ -234,11 +235,12 @@ class Trainer:
         out = self.graph.render(frame)
         if self.densifier is not None and out.meta.means2d.requires_grad:
             out.meta.means2d.retain_grad()
-        photo = photometric_loss(out.color, gt, cfg.ssim_weight, self._static_weight(frame, phase))
+        color = with_ego_from(gt, out.color, data.scene_weight)  # [H, W, 3] no gradient to the ego's pixels
+        photo = photometric_loss(color, gt, cfg.ssim_weight, self._pixel_weight(frame, phase))
         loss, sem = photo, None
         if cfg.semantic and phase.attention is not None and data.m_bg is not None:
             m = (data.m_bg if phase.attention == "bg" else data.m_ag)[frame]
-            sem = semantic_attention_loss(out.color, gt, m, cfg.lambda_sem, cfg.delta)
+            sem = semantic_attention_loss(color, gt, m, cfg.lambda_sem, cfg.delta)
             loss = photo + sem
         if not loss.requires_grad:
             return loss, sem, out
@@ -256,6 +258,14 @@ class Trainer:
     def _masks_agents(self, phase) -> bool:
         """Whether this phase's L_photo leaves out the frozen agents' pixels (a Tick with ``tick_agent_mask``)."""
         return self.cfg.tick_agent_mask and phase.name == "tick" and self.graph.num_agents > 0
+
+    def _pixel_weight(self, frame: int, phase) -> torch.Tensor | None:
+        """[H, W] L_photo's pixel weight: 0 on the ego vehicle (``TrainData.scene_weight``), times the static
+        weight in a Tick with ``tick_agent_mask``; None where every pixel counts alike."""
+        static, scene = self._static_weight(frame, phase), self.data.scene_weight
+        if static is None or scene is None:
+            return scene if static is None else static
+        return static * scene
 
     def _static_weight(self, frame: int, phase) -> torch.Tensor | None:
         """[H, W] 1 - the frozen agents' rendered alpha in a Tick with ``tick_agent_mask`` on, else None."""
@@ -302,7 +312,8 @@ class Trainer:
             self._evolve()
         row = {"iteration": self.iteration, "frame": frame, "phase": phase.name, "loss": float(loss.detach()),
                "sem": None if sem is None else float(sem.detach()),
-               "psnr": psnr(out.color.detach(), self.data.images[frame])}
+               "psnr": psnr(out.color.detach(), self.data.images[frame],
+                            None if self.data.scene_weight is None else self.data.scene_weight > 0)}
         self.history.append(row)
         return row
 
@@ -393,7 +404,8 @@ class Trainer:
         attention = self.data.m_bg if self.cfg.semantic else None
         report = track_cameras(self.graph, self.data.images, self.data.train_frames, t, self.extent,
                                attention=attention, ssim_weight=self.cfg.ssim_weight, lambda_sem=self.cfg.lambda_sem,
-                               delta=self.cfg.delta, should_stop=self.should_stop, on_step=self._tracking_step)
+                               delta=self.cfg.delta, should_stop=self.should_stop, on_step=self._tracking_step,
+                               weight=self.data.scene_weight)
         if report is None:
             return False
         row = {"iteration": self.iteration, "seconds": round(time.perf_counter() - t0, 2), **report}
