@@ -193,7 +193,8 @@ def synth_tables(runs: list[dict], preset: str) -> list[str]:
 def _machines(runs: list[dict]) -> str:
     """Which CPUs the runs ran on (records carry the model and AVX-512 from 2026-11-25 on): the same run on two
     CPUs need not give the same numbers, so a Δ between runs from different machines holds that difference too. A
-    model recorded without AVX-512 is counted apart from the same model with it."""
+    model recorded without AVX-512 is counted apart from the same model with it. Also how many runs had tracking
+    rounds of each kind or none, and how many left the ego vehicle's pixels out of training and scores."""
     count: dict[str, int] = defaultdict(int)
     for r in runs:
         machine = r.get("machine") or {}
@@ -208,8 +209,12 @@ def _machines(runs: list[dict]) -> str:
     if len(tracked) > full:
         options += (f" Coarse tracking levels splatted at their own size (the default before 2026-12-07): "
                     f"{len(tracked) - full} of {len(runs)} runs.")
-    if tracked and len(runs) > len(tracked):
+    if len(runs) > len(tracked):
         options += f" Without tracking rounds: {len(runs) - len(tracked)} of {len(runs)} runs."
+    ego = [r["metrics"]["ego_pixel_share"] for r in runs if (r.get("metrics") or {}).get("ego_pixel_share")]
+    if ego:
+        options += (f" The ego vehicle's pixels ({100 * max(ego):.1f} % of the image) left out of training and "
+                    f"scores: {len(ego)} of {len(runs)} runs.")
     return "Machines: " + ", ".join(f"{cpu} ({n} runs)" for cpu, n in sorted(count.items())) + "." + options
 
 
