@@ -19,8 +19,7 @@ Aggregation (the keys of the returned dict):
   "none").
 - The ego vehicle's pixels (the bundle's ``ego_mask``, ``agg.eval.ego``) are never scored: PSNR and SSIM are
   over the other pixels, SSIM's windows and LPIPS see the frame's own pixels there (the render's are replaced),
-  and agent masks lose them. ``ego_pixel_share``
-  is the share of the image left out (0.0 without an ego mask).
+  and agent masks lose them. ``ego_pixel_share`` is the share of the image left out (0.0 without an ego mask).
 - ``render_fps``: test frames per second of the ``render`` calls alone (no metric time), after one warm-up render.
 - ``split`` ("nvs"), ``n_test_frames``, ``n_gaussians``, ``n_agents``; ``per_frame``: one dict per frame (frame,
   psnr, ssim, lpips, psnr_agents, ssim_agents, agent_pixels, pixels: the pixels scored).

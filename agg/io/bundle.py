@@ -3,7 +3,8 @@
 The format, the conventions of every part and this API are documented in ``docs/BUNDLE.md``. Frames, timestamps
 (int64 microseconds) and pinhole intrinsics (training resolution, OpenCV pixel centres) are required; poses
 (``world_from_camera``, OpenCV camera axes, world = first camera), depth, dynamic masks, the ego-vehicle mask,
-tracklets, semantic features and the ``gt/`` sidecar are optional. Lengths are in scene units: ``metric = scale * scene_units``.
+tracklets, semantic features and the ``gt/`` sidecar are optional. Lengths are in scene units:
+``metric = scale * scene_units``.
 """
 
 from __future__ import annotations
