@@ -312,8 +312,7 @@ class Trainer:
             self._evolve()
         row = {"iteration": self.iteration, "frame": frame, "phase": phase.name, "loss": float(loss.detach()),
                "sem": None if sem is None else float(sem.detach()),
-               "psnr": psnr(out.color.detach(), self.data.images[frame],
-                            None if self.data.scene_weight is None else self.data.scene_weight > 0)}
+               "psnr": psnr(out.color.detach(), self.data.images[frame], self.data.scene_weight)}  # 0/1: a mask
         self.history.append(row)
         return row
 
