@@ -8,6 +8,7 @@ import pytest
 
 from agg.eval.scores import tracklet_scores
 from agg.priors.tracklet_ground import camera_height, ground_planes
+from agg.priors.tracklet_paths import stray_detections
 from agg.priors.tracklets import TrackConfig, TrackletInputError, fill_gaps, track_agents
 from agg.synth.corrupt import NoiseConfig, corrupt
 from agg.synth.scene import SceneConfig
@@ -146,6 +147,49 @@ def test_track_lost_longer_than_max_missed_is_relinked(clip):
     assert all(_track_of(res, gt, c, 15) != before for c in moving[1:3])
     plain = track_agents(occluded, depth, gt.K, gt.world_from_camera, TrackConfig(relink_max_gap=0))
     assert len(set(_ids_around(plain, gt, car, gap))) == 2
+
+
+def test_stray_detections_are_the_ones_off_the_tracks_image_path():
+    frames = np.arange(12)
+    centres = np.stack([300.0 + 40.0 * frames, 200.0 + 5.0 * frames], 1)  # [12, 2] fast, steady motion
+    sizes = np.tile([150.0, 160.0], (12, 1))  # [12, 2]
+    areas = np.full(12, 20000.0)
+    cfg = TrackConfig()
+    assert not stray_detections(frames, centres, sizes, areas, cfg).any()  # the ends too (one-sided windows)
+    centres[4, 0] += 90.0  # 0.6 widths to the side: a blob beside the agent
+    areas[8] = 3000.0  # a small blob taken instead of the agent
+    assert np.nonzero(stray_detections(frames, centres, sizes, areas, cfg))[0].tolist() == [4, 8]
+    centres[4, 0] -= 30.0  # 0.4 widths: kept
+    assert np.nonzero(stray_detections(frames, centres, sizes, areas, cfg))[0].tolist() == [8]
+    assert not stray_detections(frames, centres, sizes, areas, TrackConfig(stray_window=0)).any()
+    # a detection with fewer than two others within the window is not judged
+    assert not stray_detections(np.array([0, 5, 10]), centres[:3], sizes[:3], areas[:3] * [1, 0.01, 1], cfg).any()
+
+
+def test_a_blob_beside_a_hidden_car_is_not_taken_as_the_car(clip):
+    gt, moving, masks, depth = clip
+    car, f = moving[0], 10  # the car ahead: in frame 10 its mask is gone and a road blob lies beside it
+    own = gt.instance[f] == gt.agent_ids[car]
+    rows, cols = np.nonzero(own)
+    blob = np.zeros_like(own)
+    blob[rows.max() - 2:rows.max() + 2, cols.min() - 6:cols.min() - 1] = True
+    m = masks.copy()
+    m[f] = (m[f] & ~own) | blob
+    res = track_agents(m, depth, gt.K, gt.world_from_camera)
+    k = _track_of(res, gt, car, f - 1) - 1
+    tr = res.tracklets
+    assert k >= 0 and _track_of(res, gt, car, f + 1) == k + 1
+    # frame 10 is filled from the track (confidence 0, no 2D box, no instance pixels) and the box follows the car
+    assert tr.valid[k, f] and tr.confidence[k, f] == 0 and np.isnan(res.boxes2d[k, f]).all()
+    assert not (res.instance_masks[f][blob] == k + 1).any()
+    assert np.linalg.norm(tr.boxes[k, f, :3] - gt.boxes[car, f, :3]) < 1.0
+    # control: without the check the track takes the blob
+    taken = track_agents(m, depth, gt.K, gt.world_from_camera, TrackConfig(stray_window=0))
+    assert taken.tracklets.confidence[k, f] > 0 and (taken.instance_masks[f][blob] == k + 1).all()
+    # on the clean masks the check drops nothing
+    clean = track_agents(masks, depth, gt.K, gt.world_from_camera)
+    unchecked = track_agents(masks, depth, gt.K, gt.world_from_camera, TrackConfig(stray_window=0))
+    assert np.array_equal(clean.tracklets.boxes, unchecked.tracklets.boxes, equal_nan=True)
 
 
 def test_fill_gaps_interpolates_boxes_inside_a_track_only():

@@ -20,9 +20,11 @@ docs/PRIORS.md ("Agent tracklets"):
 4. **Tracking** (``agg/priors/kalman.py``): constant-velocity Kalman filters in world x, y, z, chi-square gating
    on the Mahalanobis distance plus an image-space gate, Hungarian assignment (plus a colour cue with frames); a
    track coasts (invalid) through up to ``max_missed`` missed frames and keeps its id; a track lost for longer
-   is re-joined when it reappears within ``relink_max_gap`` frames where its motion predicts; tracks with fewer than
-   ``max(min_hits, min_track_fraction T)`` detections, or smaller than an agent at their road contact, are dropped;
-   a gap of up to ``fill_max_gap`` frames inside a track is filled from the smoothed track (valid, confidence 0).
+   is re-joined when it reappears within ``relink_max_gap`` frames where its motion predicts; a detection off the
+   track's path in the image (a blob taken where the agent's mask is missing) is dropped
+   (``agg/priors/tracklet_paths.py``); tracks with fewer than ``max(min_hits, min_track_fraction T)`` detections,
+   or smaller than an agent at their road contact, are dropped; a gap of up to ``fill_max_gap`` frames inside a
+   track is filled from the smoothed track (valid, confidence 0).
 5. **Class** (rigid / non-rigid) from the tracked objects' image aspect ratio, **yaw** from the RTS-smoothed world
    velocity, and **amodal boxes** (``agg/priors/tracklet_boxes.py``): the visible points give the extents, a
    class-dependent size prior completes the unseen side (one size per rigid track), and the box is pushed away
@@ -44,6 +46,7 @@ from agg.io.bundle_priors import Tracklets
 from agg.priors.tracklet_detections import Candidate, frame_candidates
 from agg.priors.kalman import relink, smooth_sequence, track_points
 from agg.priors.tracklet_boxes import classify, track_boxes, track_yaws
+from agg.priors.tracklet_paths import drop_strays
 from agg.priors.tracklet_ground import ground_planes
 
 
@@ -100,6 +103,10 @@ class TrackConfig:
     max_missed: int = 3  # consecutive missed frames before a track ends (2-frame occlusions keep the id)
     relink_max_gap: int = 8  # a track lost for longer than max_missed is re-joined when it reappears within this
     #                          many frames where its motion predicts (agg/priors/kalman.py ``relink``); < 2: never
+    stray_window: int = 3  # a track's detection is checked against its others within this many frames (0: never)
+    stray_offset: float = 0.5  # ... and dropped when its pixel centroid lies off their line through time by more
+    #                            than this x their median box width (u) or height (v), ...
+    stray_area_ratio: float = 0.25  # ... or its area is below this x their median area (a blob taken instead)
     min_hits: int = 3  # tracks with fewer detections are dropped ...
     min_track_fraction: float = 0.2  # ... or with fewer than this x T detections (mask flicker is short-lived)
     min_ground_area: float = 0.1  # ... or whose median area in camera heights^2 at their road contact is below
@@ -150,6 +157,8 @@ class TrackConfig:
                 "max_floating_fraction in [0, 1]")
         if self.max_points < 8:
             bad("max_points must be >= 8")
+        if self.stray_window < 0 or not self.stray_offset > 0 or not 0 <= self.stray_area_ratio < 1:
+            bad("stray_window must be >= 0, stray_offset > 0 and stray_area_ratio in [0, 1)")
 
 
 @dataclass
@@ -270,8 +279,12 @@ def track_agents(masks: np.ndarray, depth: np.ndarray, K: np.ndarray, world_from
                              extra_gate=_image_gate(lifted, K, P, w, h, config))
     histories = relink(histories, max_gap=config.relink_max_gap, gate=float(chi2.ppf(config.gate_probability, 3)),
                        accel_var=accel_var)
+    # an agent's size is judged on every detection the tracker gave it (without its small strays a track of road
+    # blobs would pass); its detection count without the strays
+    histories = [drop_strays(hh, lifted, (h, w), config, accel_var, init_vel_var) for hh in histories
+                 if _big_enough(hh, lifted, config)]
     need = max(config.min_hits, int(np.ceil(config.min_track_fraction * t)))
-    histories = [hh for hh in histories if hh.hits >= need and _big_enough(hh, lifted, config)]
+    histories = [hh for hh in histories if hh.hits >= need]
     n = len(histories)
     if n == 0:
         return _empty_result(t, h, w, detections)
