@@ -51,3 +51,21 @@ def test_tracks_follow_the_given_masks(given):
     b, gt, summary = given
     assert b.has("tracklets") and summary.tracklets["count"] >= 1
     assert summary.scores["masks"]["iou_all_agents"] == 1.0  # the given masks are the GT ones
+
+
+def test_a_stage_run_again_from_the_bundle_gives_what_the_full_run_gave(tmp_path):
+    """The semantics read the flow residual; a re-run reads the one the bundle keeps (float16), so the full run
+    uses those values too and both give the same features."""
+    import shutil
+
+    gt, priors = generate(SceneConfig(seed=2, frames=12, width=320, height=192), NoiseConfig())
+    b = write_bundle(tmp_path / "a", gt, priors, NoiseConfig())
+    for part in ("depth_dense", "dynamic_masks", "tracklets", "semantics"):
+        b.remove(part)
+    summary = run_priors(SceneBundle.load(tmp_path / "a"), PriorsConfig())
+    assert {"masks", "semantics"} <= set(summary.ran)
+    shutil.copytree(tmp_path / "a", tmp_path / "b")
+    again = run_priors(SceneBundle.load(tmp_path / "b"), PriorsConfig(recompute=("semantics",)))
+    assert again.ran == ["semantics"]
+    first, second = SceneBundle.load(tmp_path / "a").semantics, SceneBundle.load(tmp_path / "b").semantics
+    np.testing.assert_array_equal(np.asarray(first.features), np.asarray(second.features))

@@ -205,7 +205,8 @@ def run_priors(bundle: SceneBundle, config: PriorsConfig = PriorsConfig(), progr
                 bundle.write_ego_mask(mres.ego, source="flow-residual")
             else:
                 bundle.remove("ego_mask")  # a stale one of earlier masks
-            residual = mres.residual
+            # what the bundle keeps (float16): later stages read these values, as a re-run from the bundle does
+            residual = mres.residual.astype(np.float16).astype(np.float32)
             np.save(bundle.path / "masks" / "flow_residual.npy", residual.astype(np.float16))
             summary.masks = {"source": "flow-residual", "coverage": float(mres.masks.mean()),
                              "frames_with_mask": int((mres.masks.reshape(t, -1).max(1) > 0).sum()),
@@ -272,12 +273,19 @@ def _dense_depth(bundle: SceneBundle) -> tuple[np.ndarray, np.ndarray | None]:
 
 
 def _class_masks(bundle: SceneBundle, track_result) -> np.ndarray | None:
-    """[T, H, W] uint8: 0 background, 1 rigid agent, 2 non-rigid agent, from this run's track instances."""
-    if track_result is None:
-        return None
-    inst = track_result.instance_masks  # [T, H, W] int32, k + 1 = track k
-    lut = np.zeros(len(track_result.tracklets.classes) + 1, np.uint8)
-    for k, c in enumerate(track_result.tracklets.classes):
+    """[T, H, W] uint8: 0 background, 1 rigid agent, 2 non-rigid agent, from this run's track instances, else
+    from the ones an earlier run kept in the bundle (``masks/instances.npy`` beside its tracklets); None without."""
+    if track_result is not None:
+        inst, classes = track_result.instance_masks, track_result.tracklets.classes  # [T, H, W] int32: k + 1
+    else:
+        path = bundle.path / "masks" / "instances.npy"
+        if not (bundle.has("tracklets") and path.is_file()):
+            return None
+        inst, classes = np.load(path), bundle.tracklets.classes
+        if inst.shape != (bundle.num_frames, bundle.height, bundle.width) or inst.max(initial=0) > len(classes):
+            return None  # not the instances of these tracklets
+    lut = np.zeros(len(classes) + 1, np.uint8)
+    for k, c in enumerate(classes):
         lut[k + 1] = 1 if c == "rigid" else 2
     return lut[inst]
 
