@@ -205,9 +205,9 @@ def run_priors(bundle: SceneBundle, config: PriorsConfig = PriorsConfig(), progr
                 bundle.write_ego_mask(mres.ego, source="flow-residual")
             else:
                 bundle.remove("ego_mask")  # a stale one of earlier masks
-            # what the bundle keeps (float16): later stages read these values, as a re-run from the bundle does
-            residual = mres.residual.astype(np.float16).astype(np.float32)
-            np.save(bundle.path / "masks" / "flow_residual.npy", residual.astype(np.float16))
+            kept = mres.residual.astype(np.float16)  # what the bundle keeps
+            np.save(bundle.path / "masks" / "flow_residual.npy", kept)
+            residual = kept.astype(np.float32)  # later stages read these values, as a re-run from the bundle does
             summary.masks = {"source": "flow-residual", "coverage": float(mres.masks.mean()),
                              "frames_with_mask": int((mres.masks.reshape(t, -1).max(1) > 0).sum()),
                              "ego_share": float(mres.ego.mean()) if mres.ego is not None else 0.0}

@@ -18,11 +18,18 @@ def _aspect(c: Candidate, K: np.ndarray) -> float:
     return float(((y1 - y0) / K[1, 1]) / max((x1 - x0) / K[0, 0], 1e-9))
 
 
+def uncut(bbox: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """[n] bool: pixel boxes [n, 4] (x0, y0, x1, y1, inclusive-exclusive) that do not touch the border of an image
+    of shape (H, W)."""
+    h, w = shape
+    return (bbox[:, 0] > 0) & (bbox[:, 1] > 0) & (bbox[:, 2] < w) & (bbox[:, 3] < h)
+
+
 def _inner(cands: dict, shape: tuple[int, int]) -> list[int]:
     """Frames whose detection does not touch the image border (all frames when every one does)."""
-    h, w = shape
-    inner = [i for i, c in cands.items() if c.bbox[0] > 0 and c.bbox[1] > 0 and c.bbox[2] < w and c.bbox[3] < h]
-    return inner or list(cands)
+    frames = list(cands)
+    ok = uncut(np.array([cands[i].bbox for i in frames], float).reshape(-1, 4), shape)
+    return [i for i, o in zip(frames, ok) if o] or frames
 
 
 def classify(cands: dict, K: np.ndarray, shape: tuple[int, int], cfg) -> str:
@@ -119,4 +126,4 @@ def track_boxes(cands: dict, yaw: np.ndarray, world_from_camera: np.ndarray, rig
         out[i] = np.array([*centre, foot, foot, ext[i][1, 1], yaw[i]])
     return out
 
-__all__ = ["classify", "track_yaws", "track_boxes"]
+__all__ = ["classify", "track_yaws", "track_boxes", "uncut"]

@@ -14,13 +14,8 @@ import numpy as np
 from scipy.stats import theilslopes
 
 from agg.priors.kalman import TrackHistory, smooth_sequence
+from agg.priors.tracklet_boxes import uncut
 from agg.priors.tracklet_detections import Candidate
-
-
-def _inner(bbox: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
-    """[n] bool: boxes [n, 4] (x0, y0, x1, y1) not cut by the border of an image of shape (H, W)."""
-    h, w = shape
-    return (bbox[:, 0] > 0) & (bbox[:, 1] > 0) & (bbox[:, 2] < w) & (bbox[:, 3] < h)
 
 
 def _line_at(frames: np.ndarray, values: np.ndarray, i: int) -> float:
@@ -60,7 +55,7 @@ def _track_arrays(hist: TrackHistory, lifted: list[list[Candidate]], shape: tupl
     bbox = np.array([c.bbox for c in cands], float).reshape(-1, 4)  # [n, 4]
     centres = np.array([c.centre_px for c in cands], float).reshape(-1, 2)
     areas = np.array([c.area for c in cands], float)
-    return steps, centres, bbox[:, 2:] - bbox[:, :2], areas, _inner(bbox, shape)
+    return steps, centres, bbox[:, 2:] - bbox[:, :2], areas, uncut(bbox, shape)
 
 
 def _smoothed(assoc: np.ndarray, lifted: list[list[Candidate]], accel_var: float,
