@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from agg.eval.scores import tracklet_scores
+from agg.priors.kalman import TrackHistory, relink, smooth_sequence
 from agg.priors.tracklet_ground import camera_height, ground_planes
 from agg.priors.tracklet_paths import stray_detections
 from agg.priors.tracklets import TrackConfig, TrackletInputError, fill_gaps, track_agents
@@ -162,8 +163,12 @@ def test_stray_detections_are_the_ones_off_the_tracks_image_path():
     centres[4, 0] -= 30.0  # 0.4 widths: kept
     assert np.nonzero(stray_detections(frames, centres, sizes, areas, cfg))[0].tolist() == [8]
     assert not stray_detections(frames, centres, sizes, areas, TrackConfig(stray_window=0)).any()
-    # a detection with fewer than two others within the window is not judged
+    # a detection with no other within the window is not judged
     assert not stray_detections(np.array([0, 5, 10]), centres[:3], sizes[:3], areas[:3] * [1, 0.01, 1], cfg).any()
+    # with one other, only by its area (each of two centroids is as far off the other)
+    two = np.array([0, 2])
+    assert stray_detections(two, centres[:2], sizes[:2], areas[:2] * [0.1, 1], cfg).tolist() == [True, False]
+    assert not stray_detections(two, centres[:2] + [[0, 0], [400, 0]], sizes[:2], areas[:2], cfg).any()
 
 
 def test_a_blob_beside_a_hidden_car_is_not_taken_as_the_car(clip):
@@ -190,6 +195,77 @@ def test_a_blob_beside_a_hidden_car_is_not_taken_as_the_car(clip):
     clean = track_agents(masks, depth, gt.K, gt.world_from_camera)
     unchecked = track_agents(masks, depth, gt.K, gt.world_from_camera, TrackConfig(stray_window=0))
     assert np.array_equal(clean.tracklets.boxes, unchecked.tracklets.boxes, equal_nan=True)
+
+
+def _blob_at(shape, rows, cols):
+    blob = np.zeros(shape, bool)
+    blob[max(rows[0], 0):rows[1], max(cols[0], 0):cols[1]] = True
+    return blob
+
+
+def test_a_lost_car_is_not_relinked_to_a_blob_far_off_in_the_image(clip):
+    gt, moving, masks, depth = clip
+    car = moving[0]
+    m = _hide(gt, masks, car, range(7, masks.shape[0]))  # the car ahead is lost from frame 7 on
+    blobs = {}
+    for f in range(12, 15):  # a car-sized blob on the road 50 px (a third of the image) to its left
+        rows, cols = np.nonzero(gt.instance[f] == gt.agent_ids[car])
+        blobs[f] = _blob_at(m[f].shape, (rows.max() - 6, rows.max()), (cols.min() - 50, cols.min() - 38))
+        m[f] |= blobs[f]
+    res = track_agents(m, depth, gt.K, gt.world_from_camera)
+    k = _track_of(res, gt, car, 6)
+    # the 3D gate of a track lost for 5 frames is wide; in the image the blob is nowhere near where the car went
+    assert k > 0 and np.nonzero(res.tracklets.valid[k - 1])[0].tolist() == list(range(7))
+    assert not any((res.instance_masks[f][b] == k).any() for f, b in blobs.items())
+    # control: without the image gate the track takes the blob, and its boxes sweep across the image to it
+    joined = track_agents(m, depth, gt.K, gt.world_from_camera, TrackConfig(gate_box_margin=-1))
+    assert all((joined.instance_masks[f][b] == k).all() for f, b in blobs.items())
+
+
+def _history(steps, t=12):
+    """A track measured at ``steps`` on x = step (1 unit per frame), RTS-smoothed."""
+    z = np.full((t, 3), np.nan)
+    z[steps] = np.stack([np.asarray(steps, float), np.zeros(len(steps)), np.full(len(steps), 10.0)], 1)
+    state, cov = smooth_sequence(z, np.repeat(0.01 * np.eye(3)[None], t, 0), accel_var=1e-3, init_vel_var=1.0)
+    assoc = np.full(t, -1)
+    assoc[steps] = 0
+    return TrackHistory(assoc=assoc, state=state, cov=cov, hits=len(steps))
+
+
+def test_relink_joins_where_the_motion_predicts_and_the_extra_gate_agrees():
+    a, b = _history([0, 1, 2, 3, 4]), _history([9, 10, 11])  # lost for 4 frames, found where it would be
+    empty = TrackHistory(assoc=np.full(12, -1), state=np.full((12, 6), np.nan), cov=np.full((12, 6, 6), np.nan),
+                         hits=0)  # a track whose every detection was a stray
+    joined = relink([a, empty, b], max_gap=8, gate=16.27, accel_var=1e-3)
+    assert len(joined) == 2 and joined[0].hits == 8 and joined[1].hits == 0
+    assert np.flatnonzero(joined[0].assoc >= 0).tolist() == [0, 1, 2, 3, 4, 9, 10, 11]
+    seen = []
+
+    def refuse(step, x):  # the image gate's signature: (step, predicted position [3]) -> [N] bool
+        seen.append((step, x.copy()))
+        return np.zeros(1, bool)
+
+    assert len(relink([a, b], max_gap=8, gate=16.27, accel_var=1e-3, extra_gate=refuse)) == 2
+    assert seen[0][0] == 9 and abs(seen[0][1][0] - 9.0) < 0.1  # asked at B's first step, for A's prediction
+    assert len(relink([a, b], max_gap=8, gate=16.27, accel_var=1e-3,
+                      extra_gate=lambda step, x: np.ones(1, bool))) == 1
+    assert len(relink([a, b], max_gap=3, gate=16.27, accel_var=1e-3)) == 2  # a gap of 5 is longer than allowed
+
+
+def test_a_track_that_starts_on_a_stray_is_relinked_to_the_car(clip):
+    gt, moving, masks, depth = clip
+    car, gap, f = moving[0], range(7, 12), 12
+    m = _hide(gt, masks, car, gap)
+    own = gt.instance[f] == gt.agent_ids[car]  # after the gap the car's mask is missing one more frame, and a
+    rows, cols = np.nonzero(own)               # small road blob beside it starts the track that goes on with it
+    blob = _blob_at(own.shape, (rows.max() - 2, rows.max() + 2), (cols.max() + 4, cols.max() + 10))
+    m[f] = (m[f] & ~own) | blob
+    res = track_agents(m, depth, gt.K, gt.world_from_camera)
+    before, after = _ids_around(res, gt, car, range(7, 13))
+    assert before > 0 and before == after and not (res.instance_masks[f][blob] > 0).any()
+    # control: the blob-led track is refused by the image gate, and without the stray check it stays a new id
+    plain = track_agents(m, depth, gt.K, gt.world_from_camera, TrackConfig(stray_window=0))
+    assert len(set(_ids_around(plain, gt, car, range(7, 13)))) == 2
 
 
 def test_fill_gaps_interpolates_boxes_inside_a_track_only():

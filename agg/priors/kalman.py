@@ -223,27 +223,32 @@ def smooth_sequence(z: np.ndarray, R: np.ndarray, *, accel_var: float, init_vel_
     return state, cov
 
 
-def relink(histories: list[TrackHistory], *, max_gap: int, gate: float, accel_var: float) -> list[TrackHistory]:
+def relink(histories: list[TrackHistory], *, max_gap: int, gate: float, accel_var: float,
+           extra_gate: Callable[[int, np.ndarray], np.ndarray] | None = None) -> list[TrackHistory]:
     """Join tracks broken by a gap longer than the tracker's ``max_missed`` (an agent lost for a few frames).
 
-    A track B that starts ``g`` steps (1 <= g <= ``max_gap``) after a track A ended, with no step in common, is
-    the same agent when A's smoothed last state, propagated over the gap with the constant-velocity model
-    (covariance grown by the process noise), meets B's smoothed first position within the chi-square ``gate`` on
-    the squared Mahalanobis distance (covariance: propagated A plus B's). Pairs are joined greedily, closest
-    first; each track joins at most one successor and one predecessor. The joined track keeps A's start (its
-    id order), both tracks' measurements and states, and NaN states in the gap (coasted, invalid there).
+    A track B that starts ``g`` steps (1 <= g <= ``max_gap``) after a track A ended, with no step in common, is the
+    same agent when A's smoothed last state, propagated over the gap with the constant-velocity model (covariance
+    grown by the process noise), meets B's smoothed first position within the chi-square ``gate`` on the squared
+    Mahalanobis distance (covariance: propagated A plus B's) and, with ``extra_gate`` (step, predicted position [3])
+    -> [N] bool as in ``track_points``, that gate accepts B's first measurement for A's propagated position. Pairs
+    are joined greedily, closest first; each track joins at most one successor and one predecessor. The joined track
+    keeps A's start (its id order), both tracks' measurements and states, and NaN states in the gap (coasted,
+    invalid there).
     """
     if max_gap < 2 or len(histories) < 2:
         return list(histories)
     spans = []
     for h in histories:
         steps = np.flatnonzero(h.assoc >= 0)
-        spans.append((int(steps[0]), int(steps[-1])))
+        spans.append((int(steps[0]), int(steps[-1])) if len(steps) else None)  # None: no measurement left
     pairs = []
     for a, ha in enumerate(histories):
         for b, hb in enumerate(histories):
+            if a == b or spans[a] is None or spans[b] is None:
+                continue
             gap = spans[b][0] - spans[a][1]
-            if a == b or not 1 <= gap <= max_gap:
+            if not 1 <= gap <= max_gap:
                 continue
             x, p = ha.state[spans[a][1]], ha.cov[spans[a][1]]  # [6], [6, 6]
             f, q = transition(float(gap)), process_noise(float(gap), accel_var)
@@ -251,7 +256,7 @@ def relink(histories: list[TrackHistory], *, max_gap: int, gate: float, accel_va
             s = p[:3, :3] + hb.cov[spans[b][0], :3, :3]
             y = hb.state[spans[b][0], :3] - x[:3]
             d2 = float(y @ np.linalg.solve(s, y))
-            if d2 <= gate:
+            if d2 <= gate and (extra_gate is None or extra_gate(spans[b][0], x[:3])[hb.assoc[spans[b][0]]]):
                 pairs.append((d2, a, b))
     nxt: dict[int, int] = {}
     prv: dict[int, int] = {}

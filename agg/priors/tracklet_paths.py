@@ -27,19 +27,22 @@ def _line_at(frames: np.ndarray, values: np.ndarray, i: int) -> float:
 def stray_detections(frames: np.ndarray, centres: np.ndarray, sizes: np.ndarray, areas: np.ndarray, cfg,
                      inner: np.ndarray | None = None) -> np.ndarray:
     """[n] bool: the detections of one track that sit off its path in the image. frames [n] sorted frame indices,
-    centres [n, 2] pixel centroids (u, v), sizes [n, 2] box (width, height), areas [n] pixels; inner [n] bool:
-    not cut by the image border (None: all). Each inner detection is compared with the track's other inner ones
-    within ``stray_window`` frames (at least 2 of them): it is a stray when its centroid lies more than
-    ``stray_offset`` x their median width (u) or height (v) off their Theil-Sen line through time, or its area
-    is below ``stray_area_ratio`` x their median area. A detection cut by the border shrinks and shifts as the
-    agent leaves the image: it is neither judged nor a reference."""
+    centres [n, 2] pixel centroids (u, v), sizes [n, 2] box (width, height), areas [n] pixels; inner [n] bool: not
+    cut by the image border (None: all). Each inner detection is compared with the track's other inner ones within
+    ``stray_window`` frames: it is a stray when its centroid lies more than ``stray_offset`` x their median width
+    (u) or height (v) off their Theil-Sen line through time (with at least 2 of them), or its area is below
+    ``stray_area_ratio`` x their median area (also with only one). A detection cut by the border shrinks and shifts
+    as the agent leaves the image: it is neither judged nor a reference."""
     out = np.zeros(len(frames), bool)
     if cfg.stray_window <= 0:
         return out
     inner = np.ones(len(frames), bool) if inner is None else np.asarray(inner, bool)
     for j, i in enumerate(frames):
         near = np.nonzero((np.abs(frames - i) <= cfg.stray_window) & (frames != i) & inner)[0]
-        if not inner[j] or len(near) < 2:
+        if not inner[j] or len(near) == 0:
+            continue
+        if len(near) == 1:  # no line through one centroid, and each of two is as far off the other: area only
+            out[j] = bool(areas[j] < cfg.stray_area_ratio * areas[near[0]])
             continue
         scale = np.median(sizes[near], 0)  # [2]
         off = [abs(centres[j, a] - _line_at(frames[near], centres[near, a], i)) for a in range(2)]

@@ -20,11 +20,12 @@ docs/PRIORS.md ("Agent tracklets"):
 4. **Tracking** (``agg/priors/kalman.py``): constant-velocity Kalman filters in world x, y, z, chi-square gating
    on the Mahalanobis distance plus an image-space gate, Hungarian assignment (plus a colour cue with frames); a
    track coasts (invalid) through up to ``max_missed`` missed frames and keeps its id; a track lost for longer
-   is re-joined when it reappears within ``relink_max_gap`` frames where its motion predicts; a detection off the
-   track's path in the image (a blob taken where the agent's mask is missing) is dropped
-   (``agg/priors/tracklet_paths.py``); tracks with fewer than ``max(min_hits, min_track_fraction T)`` detections,
-   or smaller than an agent at their road contact, are dropped; a gap of up to ``fill_max_gap`` frames inside a
-   track is filled from the smoothed track (valid, confidence 0).
+   is re-joined when it reappears within ``relink_max_gap`` frames where its motion predicts, in 3D and in the
+   image; a detection off the track's path in the image (a blob taken where the agent's mask is missing) is
+   dropped (``agg/priors/tracklet_paths.py``), and the tracks are re-joined again without the dropped ones;
+   tracks with fewer than ``max(min_hits, min_track_fraction T)`` detections, or smaller than an agent at their
+   road contact, are dropped; a gap of up to ``fill_max_gap`` frames inside a track is filled from the smoothed
+   track (valid, confidence 0).
 5. **Class** (rigid / non-rigid) from the tracked objects' image aspect ratio, **yaw** from the RTS-smoothed world
    velocity, and **amodal boxes** (``agg/priors/tracklet_boxes.py``): the visible points give the extents, a
    class-dependent size prior completes the unseen side (one size per rigid track), and the box is pushed away
@@ -270,19 +271,24 @@ def track_agents(masks: np.ndarray, depth: np.ndarray, K: np.ndarray, world_from
     feats = None if frames is None else [np.array([c.appearance for c in cs]).reshape(len(cs), n_bins)
                                          for cs in lifted]
     accel_var, init_vel_var = (config.accel_sigma * s_ref) ** 2, (config.init_speed_sigma * s_ref) ** 2
+    image_gate, gate = _image_gate(lifted, K, P, w, h, config), float(chi2.ppf(config.gate_probability, 3))
     histories = track_points([np.array([c.centre_world for c in cs]).reshape(-1, 3) for cs in lifted],
                              [np.array([c.cov_world for c in cs]).reshape(-1, 3, 3) for cs in lifted], dt,
                              accel_var=accel_var, init_vel_var=init_vel_var,
-                             gate=float(chi2.ppf(config.gate_probability, 3)), max_missed=config.max_missed,
+                             gate=gate, max_missed=config.max_missed,
                              feat_steps=feats, appearance_weight=config.appearance_weight,
                              appearance_memory=config.appearance_memory,
-                             extra_gate=_image_gate(lifted, K, P, w, h, config))
-    histories = relink(histories, max_gap=config.relink_max_gap, gate=float(chi2.ppf(config.gate_probability, 3)),
-                       accel_var=accel_var)
+                             extra_gate=image_gate)
+    histories = relink(histories, max_gap=config.relink_max_gap, gate=gate, accel_var=accel_var,
+                       extra_gate=image_gate)
     # an agent's size is judged on every detection the tracker gave it (without its small strays a track of road
     # blobs would pass); its detection count without the strays
     histories = [drop_strays(hh, lifted, (h, w), config, accel_var, init_vel_var) for hh in histories
                  if _big_enough(hh, lifted, config)]
+    # a track whose first or last detection was a stray may now meet its continuation (the blob was taken at the
+    # start of the track that went on with the agent, so the first relink missed the pair)
+    histories = relink(histories, max_gap=config.relink_max_gap, gate=gate, accel_var=accel_var,
+                       extra_gate=image_gate)
     need = max(config.min_hits, int(np.ceil(config.min_track_fraction * t)))
     histories = [hh for hh in histories if hh.hits >= need]
     n = len(histories)
